@@ -1,0 +1,54 @@
+# kftrack course-book. Quick start: `make book` builds the site, `make test` runs every test.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+# Deterministic numerics in notebooks and tests (kernels inherit this environment).
+# MPLBACKEND is deliberately not set: it would drop the figures from executed notebooks.
+RUN    := PYTHONHASHSEED=0 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
+NBVAL  := --nbval --nbval-current-env --nbval-sanitize-with tests/nbval_sanitize.cfg
+
+.PHONY: help venv book test unit nbval booktest lab execute clean
+
+help:
+	@echo "make book     build the site into _build/html from the executed notebooks"
+	@echo "make test     unit tests, nbval over notebooks/, then the book build (-W)"
+	@echo "make lab      JupyterLab on notebooks/"
+	@echo "make execute  re-execute every notebook in place (NB=notebooks/02-*.ipynb for one)"
+	@echo "make clean    remove _build/ and caches (keeps .venv)"
+
+# (Re)create the virtual environment when it is missing or older than the requirements.
+$(STAMP): requirements.txt constraints.txt pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -r requirements.txt
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+book: $(STAMP)
+	$(RUN) $(BIN)/jupyter-book build . -W -n --keep-going
+	@echo "Open $(CURDIR)/_build/html/index.html"
+
+unit: $(STAMP)
+	$(RUN) $(BIN)/python -m pytest -q tests --ignore=tests/book
+
+nbval: $(STAMP)
+	$(RUN) $(BIN)/python -m pytest -q $(NBVAL) notebooks
+
+booktest: $(STAMP)
+	$(RUN) $(BIN)/python -m pytest -q tests/book
+
+test: unit nbval booktest
+
+lab: $(STAMP)
+	$(RUN) $(BIN)/jupyter lab notebooks
+
+NB ?= notebooks/*.ipynb
+execute: $(STAMP)
+	$(RUN) $(BIN)/jupyter nbconvert --to notebook --execute --inplace \
+	  --ExecutePreprocessor.timeout=300 --ExecutePreprocessor.kernel_name=python3 $(NB)
+
+clean:
+	rm -rf _build .pytest_cache .hypothesis
+	find . -name __pycache__ -not -path './.venv/*' -prune -exec rm -rf {} +

@@ -1,0 +1,80 @@
+"""Input checks shared by the public functions (private module).
+
+Every check raises ``ValueError`` (or ``TypeError``) whose message names the argument,
+what was expected and what was received. Checks run once at a public boundary; the
+inner loops of the filters call the unchecked kernels.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["as_float_array", "as_vector", "as_matrix", "check_covariance", "check_finite"]
+
+
+def as_float_array(value, name: str) -> np.ndarray:
+    """Convert ``value`` to a float ndarray or raise ``TypeError`` naming ``name``."""
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be an array of real numbers, got {type(value).__name__}") from exc
+    return arr
+
+
+def check_finite(arr: np.ndarray, name: str) -> np.ndarray:
+    """Raise ``ValueError`` if ``arr`` holds NaN or inf."""
+    if not np.all(np.isfinite(arr)):
+        bad = "NaN" if np.isnan(arr).any() else "inf"
+        raise ValueError(f"{name} must be finite, but it contains {bad}")
+    return arr
+
+
+def as_vector(value, name: str, n: int | None = None, allow_nan: bool = False) -> np.ndarray:
+    """A stack of vectors, shape ``(..., n)``; ``n`` checked when given."""
+    arr = as_float_array(value, name)
+    if arr.ndim == 0:
+        raise ValueError(f"{name} must have shape (..., n) with at least one axis, got a scalar")
+    if n is not None and arr.shape[-1] != n:
+        raise ValueError(f"{name} must have shape (..., {n}), got shape {arr.shape}")
+    if not allow_nan:
+        check_finite(arr, name)
+    return arr
+
+
+def as_matrix(value, name: str, rows: int | None = None, cols: int | None = None) -> np.ndarray:
+    """A stack of matrices, shape ``(..., rows, cols)``, finite."""
+    arr = as_float_array(value, name)
+    if arr.ndim < 2:
+        raise ValueError(f"{name} must have shape (..., {rows or 'r'}, {cols or 'c'}), got shape {arr.shape}")
+    r, c = arr.shape[-2:]
+    if (rows is not None and r != rows) or (cols is not None and c != cols):
+        raise ValueError(
+            f"{name} must have shape (..., {rows if rows is not None else r}, "
+            f"{cols if cols is not None else c}), got shape {arr.shape}"
+        )
+    return check_finite(arr, name)
+
+
+def check_covariance(value, name: str, n: int | None = None, positive_definite: bool = False) -> np.ndarray:
+    """A stack of symmetric positive semi-definite (or definite) matrices ``(..., n, n)``.
+
+    Symmetry and the sign of the smallest eigenvalue are judged relative to the largest
+    entry, with a tolerance of a few thousand machine epsilons: round-off passes, a real
+    asymmetry or a negative variance does not.
+    """
+    arr = as_matrix(value, name, n, n)
+    if arr.shape[-1] != arr.shape[-2]:
+        raise ValueError(f"{name} must be square, shape (..., n, n), got shape {arr.shape}")
+    scale = np.max(np.abs(arr), axis=(-2, -1), keepdims=True) + np.finfo(float).tiny
+    tol = 1e3 * arr.shape[-1] * np.finfo(float).eps
+    asym = np.max(np.abs(arr - np.swapaxes(arr, -1, -2)) / scale)
+    if asym > tol:
+        raise ValueError(f"{name} must be symmetric, but |{name} - {name}.T| / max|{name}| = {asym:.3g}")
+    eig = np.linalg.eigvalsh(0.5 * (arr + np.swapaxes(arr, -1, -2)))
+    worst = np.min(eig[..., 0] / scale[..., 0, 0])
+    if positive_definite and worst <= tol:
+        raise ValueError(f"{name} must be positive definite, but its smallest eigenvalue is {np.min(eig[..., 0]):.3g}")
+    if worst < -tol:
+        raise ValueError(
+            f"{name} must be positive semi-definite, but its smallest eigenvalue is {np.min(eig[..., 0]):.3g}"
+        )
+    return arr

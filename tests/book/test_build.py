@@ -1,0 +1,57 @@
+"""The site builds with warnings as errors from the stored (nbval-validated) outputs.
+
+Runs after the unit tests and nbval (see the Makefile). Nothing executes during the build
+(``execute_notebooks: off``), so the site shows exactly what the tests proved.
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[2]
+HTML = ROOT / "_build" / "html"
+
+
+def _toc_files() -> list[str]:
+    toc = yaml.safe_load((ROOT / "_toc.yml").read_text())
+    files = [toc["root"]]
+    for part in toc.get("parts", []):
+        files += [c["file"] for c in part.get("chapters", [])]
+    return files
+
+
+@pytest.fixture(scope="module")
+def built_site() -> Path:
+    exe = Path(sys.executable).with_name("jupyter-book")
+    proc = subprocess.run([str(exe), "build", str(ROOT), "-W", "-n", "--keep-going"],
+                          capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode != 0:
+        reports = "\n".join(p.read_text() for p in (HTML / "reports").rglob("*.log")) if (HTML / "reports").exists() else ""
+        pytest.fail(f"jupyter-book build failed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}\n{reports}")
+    return HTML
+
+
+def test_every_toc_page_is_built(built_site: Path) -> None:
+    for name in _toc_files():
+        assert (built_site / f"{name}.html").is_file(), f"{name}.html missing from the site"
+
+
+def test_every_chapter_is_executed_and_shows_figures(built_site: Path) -> None:
+    chapters = [f for f in _toc_files() if f.startswith("notebooks/")]
+    assert chapters, "the table of contents lists no chapter"
+    for name in chapters:
+        html = (built_site / f"{name}.html").read_text(encoding="utf-8")
+        assert "cell_output" in html, f"{name}: no stored outputs on the page"
+        assert "<img" in html, f"{name}: no figure on the page"
+
+
+def test_exercises_and_bibliography_render(built_site: Path) -> None:
+    bib = (built_site / "book" / "bibliography.html").read_text(encoding="utf-8")
+    assert "Bar-Shalom" in bib
+    for name in [f for f in _toc_files() if f.startswith("notebooks/")]:
+        html = (built_site / f"{name}.html").read_text(encoding="utf-8")
+        assert "exercise" in html, f"{name}: no exercise block"
