@@ -1,0 +1,572 @@
+r"""Motion models for tracking: constant velocity, constant acceleration, Singer, and the
+coordinated turn with known or estimated turn rate.
+
+Every model gives the transition ``F(dt)``, the process noise ``Q(dt)``, the transition
+function ``f(x, dt)``, its Jacobian ``jacobian(x, dt)`` and the position-measurement matrix
+``H``. The matrices are derived in :mod:`kftrack.symbolic` and generated once per process.
+
+Conventions
+-----------
+* State order is interleaved by axis: ``[x, vx, y, vy, z, vz]``, ``[x, vx, ax, y, vy, ay]``;
+  the turn rate ``omega`` (rad/s, counter-clockwise positive) comes last.
+* Shapes: ``x`` is ``(..., n)``; ``dt`` (s) is a scalar or an array broadcasting with the batch
+  axes; ``F``, ``Q``, ``jacobian`` return ``(..., n, n)``.
+* ``dt`` may be negative in ``F``, ``f`` and ``jacobian`` (``F(-dt)`` is the inverse of
+  ``F(dt)``: retrodiction); ``Q(dt)`` needs ``dt >= 0``, since the noise of a backward step
+  is not ``Q(|dt|)``.
+* Noise parameters say what they are. ``q`` is a **continuous-time power spectral density**
+  (continuous white noise, e.g. m²/s³ for white acceleration); ``sigma2`` is a **discrete
+  variance** of a noise held constant over each interval (e.g. m²/s⁴). Each model takes
+  exactly one of the two.
+* Singular points have series branches: the turn models at :math:`\omega T \to 0`
+  (exact at :math:`\omega = 0`), Singer at :math:`\alpha T \to 0` (tends to constant acceleration).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+import scipy.linalg
+import sympy as sp
+
+from . import symbolic as sym
+from ._validate import as_float_array, as_matrix, as_vector, check_finite
+
+__all__ = [
+    "ConstantVelocity", "ConstantAcceleration", "Singer", "KnownTurn", "CoordinatedTurn",
+    "CoordinatedTurnPolar", "van_loan", "singer_acceleration_variance", "turn_state_to_polar",
+    "turn_state_from_polar", "TURN_SERIES_THRESHOLD", "SINGER_SERIES_THRESHOLD",
+]
+
+#: |omega*dt| below which the turn models use their Taylor series (order 20 in omega).
+TURN_SERIES_THRESHOLD = 0.5
+#: |alpha*dt| below which Singer uses its Taylor series (order 24 in alpha).
+SINGER_SERIES_THRESHOLD = 1.0
+_TURN_SERIES = (sym.omega, sym.omega * sym.T, TURN_SERIES_THRESHOLD, 20)
+_SINGER_SERIES = (sym.alpha, sym.alpha * sym.T, SINGER_SERIES_THRESHOLD, 24)
+
+
+# --------------------------------------------------------------------------------------------
+# generated functions, derived once per process
+# --------------------------------------------------------------------------------------------
+@lru_cache(maxsize=None)
+def _kinematic(order: int) -> dict:
+    A = sym.kinematic_A(order)
+    G = sym.white_noise_gain(order + 1, [order])
+    Gam = sym.kinematic_discrete_gain(order)
+    args = [sym.T]
+    return {
+        "F": sym.GeneratedFunction(args, sym.transition_matrix(A)),
+        "Qc": sym.GeneratedFunction(args, sym.continuous_white_noise(A, G, sp.Matrix([[1]]))),
+        "Qd": sym.GeneratedFunction(args, sym.discrete_white_noise(Gam, 1)),
+    }
+
+
+@lru_cache(maxsize=None)
+def _singer() -> dict:
+    A = sym.singer_A()
+    G = sym.white_noise_gain(3, [2])
+    args = [sym.T, sym.alpha]
+    return {
+        "F": sym.GeneratedFunction(args, sym.transition_matrix(A), _SINGER_SERIES),
+        "Qc": sym.GeneratedFunction(args, sym.continuous_white_noise(A, G, sp.Matrix([[1]])), _SINGER_SERIES),
+    }
+
+
+@lru_cache(maxsize=None)
+def _known_turn() -> dict:
+    A = sym.turn_A()
+    G = sym.white_noise_gain(4, [1, 3])
+    args = [sym.T, sym.omega]
+    return {
+        "F": sym.GeneratedFunction(args, sym.transition_matrix(A), _TURN_SERIES),
+        "Qc": sym.GeneratedFunction(args, sym.continuous_white_noise(A, G, sp.eye(2)), _TURN_SERIES),
+    }
+
+
+@lru_cache(maxsize=None)
+def _coordinated_turn(ndim: int) -> dict:
+    s, f = sym.coordinated_turn_transition(ndim)
+    args = [*s, sym.T]
+    return {
+        "f": sym.GeneratedFunction(args, f, _TURN_SERIES),
+        "J": sym.GeneratedFunction(args, sym.jacobian(f, s), _TURN_SERIES),
+    }
+
+
+@lru_cache(maxsize=None)
+def _polar_turn() -> dict:
+    s, f = sym.polar_turn_transition()
+    args = [*s, sym.T]
+    return {
+        "f": sym.GeneratedFunction(args, f, _TURN_SERIES),
+        "J": sym.GeneratedFunction(args, sym.jacobian(f, s), _TURN_SERIES),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# input checks and block assembly
+# --------------------------------------------------------------------------------------------
+def _dt(dt, nonnegative: bool = False, what: str = "") -> np.ndarray:
+    arr = check_finite(as_float_array(dt, "dt"), "dt")
+    if nonnegative and np.any(arr < 0):
+        raise ValueError(f"dt must be >= 0{what}, got min(dt) = {arr.min():.6g}")
+    return arr
+
+
+def _nonneg(value, name: str, count: int) -> tuple[float, ...]:
+    arr = check_finite(as_float_array(value, name), name)
+    if arr.ndim == 0:
+        arr = np.full(count, float(arr))
+    if arr.shape != (count,):
+        raise ValueError(f"{name} must be a scalar or have shape ({count},), got shape {arr.shape}")
+    if np.any(arr < 0):
+        raise ValueError(f"{name} must be >= 0, got {arr.tolist()}")
+    return tuple(float(v) for v in arr)
+
+
+def _ndim(ndim, allowed: tuple[int, ...]) -> int:
+    if isinstance(ndim, bool) or not isinstance(ndim, (int, np.integer)) or ndim not in allowed:
+        raise ValueError(f"ndim must be one of {allowed}, got {ndim!r}")
+    return int(ndim)
+
+
+def _one_of(q, sigma2, q_name: str = "q", sigma2_name: str = "sigma2") -> str:
+    if (q is None) == (sigma2 is None):
+        raise ValueError(
+            f"give exactly one noise parameter: {q_name} (continuous-time spectral density) or "
+            f"{sigma2_name} (discrete variance); got {q_name}={q!r}, {sigma2_name}={sigma2!r}"
+        )
+    return "continuous" if q is not None else "discrete"
+
+
+def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
+    """Block-diagonal stack of ``(..., k_i, k_i)`` blocks with broadcast batch axes."""
+    batch = np.broadcast_shapes(*(b.shape[:-2] for b in blocks))
+    n = sum(b.shape[-1] for b in blocks)
+    out = np.zeros(batch + (n, n))
+    i = 0
+    for b in blocks:
+        k = b.shape[-1]
+        out[..., i:i + k, i:i + k] = b
+        i += k
+    return out
+
+
+def _apply(F: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return np.einsum("...ij,...j->...i", F, x)
+
+
+def _position_selector(n: int, positions: tuple[int, ...]) -> np.ndarray:
+    H = np.zeros((len(positions), n))
+    H[np.arange(len(positions)), positions] = 1.0
+    return H
+
+
+# --------------------------------------------------------------------------------------------
+# linear kinematic models
+# --------------------------------------------------------------------------------------------
+class _LinearModel:
+    """Shared behaviour of the linear models: ``f(x, dt) = F(dt) x`` and ``jacobian = F``."""
+
+    ndim: int
+    _k: int  # states per axis
+
+    @property
+    def n(self) -> int:
+        """State dimension."""
+        return self.ndim * self._k
+
+    @property
+    def H(self) -> np.ndarray:
+        """Position-measurement matrix, shape ``(ndim, n)``."""
+        return _position_selector(self.n, tuple(range(0, self.n, self._k)))
+
+    def f(self, x, dt) -> np.ndarray:
+        """Transition function ``F(dt) x``; ``x`` ``(..., n)`` -> ``(..., n)``."""
+        x = as_vector(x, "x", self.n)
+        return _apply(self.F(dt), x)
+
+    def jacobian(self, x, dt) -> np.ndarray:
+        """Jacobian of ``f``: ``F(dt)`` broadcast to the batch of ``x``, ``(..., n, n)``."""
+        x = as_vector(x, "x", self.n)
+        F = self.F(dt)
+        return np.broadcast_to(F, np.broadcast_shapes(F.shape[:-2], x.shape[:-1]) + F.shape[-2:]).copy()
+
+
+@dataclass(frozen=True)
+class _Kinematic(_LinearModel):
+    ndim: int = 1
+    q: float | tuple | None = None
+    sigma2: float | tuple | None = None
+    noise: str = field(init=False)
+    _order = 1
+
+    def __post_init__(self):
+        object.__setattr__(self, "ndim", _ndim(self.ndim, (1, 2, 3)))
+        noise = _one_of(self.q, self.sigma2)
+        object.__setattr__(self, "noise", noise)
+        name = "q" if noise == "continuous" else "sigma2"
+        object.__setattr__(self, name, _nonneg(getattr(self, name), name, self.ndim))
+
+    @property
+    def _k(self) -> int:
+        return self._order + 1
+
+    def F(self, dt) -> np.ndarray:
+        """Transition matrix, ``(..., n, n)``: per axis ``F[i, j] = dt**(j-i) / (j-i)!``."""
+        Fa = _kinematic(self._order)["F"](_dt(dt))
+        return _block_diag([Fa] * self.ndim)
+
+    def Q(self, dt) -> np.ndarray:
+        """Process noise, ``(..., n, n)``, by the model's noise convention (see the class)."""
+        d = _dt(dt, nonnegative=True, what=" for the process noise Q(dt)")
+        if self.noise == "continuous":
+            Qa = _kinematic(self._order)["Qc"](d)
+            return _block_diag([qi * Qa for qi in self.q])
+        Qa = _kinematic(self._order)["Qd"](d)
+        return _block_diag([si * Qa for si in self.sigma2])
+
+
+@dataclass(frozen=True)
+class ConstantVelocity(_Kinematic):
+    r"""Nearly constant velocity, state ``[x, vx(, y, vy(, z, vz))]`` (m, m/s).
+
+    Parameters
+    ----------
+    ndim : 1, 2 or 3 spatial axes.
+    q : power spectral density of the continuous white acceleration, **m²/s³** (scalar or one
+        per axis). Gives the DCWNA model, per axis
+        :math:`Q = q\begin{bmatrix}T^3/3 & T^2/2\\ T^2/2 & T\end{bmatrix}` (full rank).
+    sigma2 : variance of the discrete white acceleration held constant over each interval,
+        **m²/s⁴**. Gives the DWNA model, :math:`\Gamma = [T^2/2, T]^\top`,
+        :math:`Q = \sigma^2 \Gamma\Gamma^\top` (rank 1 per axis).
+
+    Bar-Shalom, Li & Kirubarajan (2001), ch. 6. Give exactly one of ``q``, ``sigma2``.
+    """
+
+    _order = 1
+
+
+@dataclass(frozen=True)
+class ConstantAcceleration(_Kinematic):
+    r"""Nearly constant acceleration, state ``[x, vx, ax(, y, vy, ay(, z, vz, az))]``.
+
+    Parameters
+    ----------
+    ndim : 1, 2 or 3 spatial axes.
+    q : power spectral density of the continuous white jerk, **m²/s⁵**. Gives the continuous
+        Wiener-process acceleration model,
+        :math:`Q = q[[T^5/20, T^4/8, T^3/6], [T^4/8, T^3/3, T^2/2], [T^3/6, T^2/2, T]]`.
+    sigma2 : variance of the acceleration increment over one interval, **m²/s⁴**. Gives the
+        discrete Wiener-process acceleration model, :math:`\Gamma = [T^2/2, T, 1]^\top` (rank 1).
+
+    Bar-Shalom, Li & Kirubarajan (2001), ch. 6. Give exactly one of ``q``, ``sigma2``.
+    """
+
+    _order = 2
+
+
+@dataclass(frozen=True)
+class Singer(_LinearModel):
+    r"""Singer (1970) manoeuvre model, state ``[x, vx, ax(, y, vy, ay(, z, vz, az))]``.
+
+    The acceleration is a first-order Markov process, :math:`\dot a = -\alpha a + w`,
+    :math:`\alpha = 1/\tau`, with :math:`w` continuous white noise.
+
+    Parameters
+    ----------
+    tau : manoeuvre time constant :math:`\tau_m` (s), ``> 0``; ``np.inf`` gives constant
+        acceleration exactly.
+    ndim : 1, 2 or 3 spatial axes.
+    q : power spectral density of :math:`w`, **m²/s⁵** (continuous).
+    sigma2_a : alternatively, Singer's stationary variance of the target acceleration
+        :math:`\sigma_m^2` (**m²/s⁴**), giving :math:`q = 2\alpha\sigma_m^2`. This is a
+        parameter of the continuous model, not a discrete noise variance.
+
+    ``F`` and ``Q`` are the exact exponential and noise integral (Singer 1970; Li & Jilkov 2003),
+    with a Taylor branch for :math:`|\alpha T| < 1`, so that ``alpha -> 0`` tends to
+    :class:`ConstantAcceleration` with spectral density ``q`` without cancellation.
+    """
+
+    tau: float = 1.0
+    ndim: int = 1
+    q: float | tuple | None = None
+    sigma2_a: float | tuple | None = None
+    _k = 3
+
+    def __post_init__(self):
+        object.__setattr__(self, "ndim", _ndim(self.ndim, (1, 2, 3)))
+        tau_ = float(as_float_array(self.tau, "tau"))
+        if not tau_ > 0 or np.isnan(tau_):
+            raise ValueError(f"tau must be > 0 (s; np.inf for constant acceleration), got {self.tau!r}")
+        object.__setattr__(self, "tau", tau_)
+        noise = _one_of(self.q, self.sigma2_a, "q", "sigma2_a")
+        if noise == "continuous":
+            object.__setattr__(self, "q", _nonneg(self.q, "q", self.ndim))
+        else:
+            s2 = _nonneg(self.sigma2_a, "sigma2_a", self.ndim)
+            object.__setattr__(self, "sigma2_a", s2)
+            object.__setattr__(self, "q", tuple(2.0 * v / self.tau for v in s2))
+
+    @property
+    def alpha(self) -> float:
+        """Manoeuvre correlation rate :math:`\\alpha = 1/\\tau` (1/s)."""
+        return 0.0 if np.isinf(self.tau) else 1.0 / self.tau
+
+    def F(self, dt) -> np.ndarray:
+        """Transition matrix, ``(..., n, n)``."""
+        Fa = _singer()["F"](_dt(dt), self.alpha)
+        return _block_diag([Fa] * self.ndim)
+
+    def Q(self, dt) -> np.ndarray:
+        """Exact continuous-white-noise process noise, ``(..., n, n)``."""
+        Qa = _singer()["Qc"](_dt(dt, nonnegative=True, what=" for the process noise Q(dt)"), self.alpha)
+        return _block_diag([qi * Qa for qi in self.q])
+
+
+def singer_acceleration_variance(a_max: float, p_max: float, p_0: float) -> float:
+    r"""Singer's (1970) acceleration variance from the expected manoeuvre,
+    :math:`\sigma_m^2 = \frac{A_{max}^2}{3}(1 + 4P_{max} - P_0)` (m²/s⁴): the target accelerates at
+    :math:`\pm A_{max}` with probability ``p_max`` each, not at all with ``p_0``, and uniformly
+    in between otherwise."""
+    a = float(check_finite(as_float_array(a_max, "a_max"), "a_max"))
+    pm, p0 = float(as_float_array(p_max, "p_max")), float(as_float_array(p_0, "p_0"))
+    if not (0 <= pm and 0 <= p0 and 2 * pm + p0 <= 1):
+        raise ValueError(f"p_max and p_0 must be probabilities with 2*p_max + p_0 <= 1, got p_max={p_max!r}, p_0={p_0!r}")
+    return a * a / 3.0 * (1.0 + 4.0 * pm - p0)
+
+
+# --------------------------------------------------------------------------------------------
+# turns
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class KnownTurn(_LinearModel):
+    r"""Coordinated turn at a known, constant rate :math:`\omega` (linear model).
+
+    State ``[x, vx, y, vy]`` (2-D) or ``[x, vx, y, vy, z, vz]`` (3-D: the turn is in the
+    horizontal plane, the vertical axis moves at nearly constant velocity). Counter-clockwise
+    positive (rad/s).
+
+    .. math::
+
+        F(T) = \begin{bmatrix} 1 & \frac{\sin\omega T}{\omega} & 0 & -\frac{1-\cos\omega T}{\omega}\\
+        0 & \cos\omega T & 0 & -\sin\omega T\\ 0 & \frac{1-\cos\omega T}{\omega} & 1 &
+        \frac{\sin\omega T}{\omega}\\ 0 & \sin\omega T & 0 & \cos\omega T\end{bmatrix}
+
+    Parameters
+    ----------
+    omega : turn rate (rad/s); ``0`` gives constant velocity exactly.
+    ndim : 2 or 3.
+    q : spectral density of the continuous white acceleration in each axis, **m²/s³**. ``Q`` is
+        then the **exact** noise integral of the turning model (it couples the axes:
+        :math:`Q_{14} = -Q_{23} = q(\omega T - \sin\omega T)/\omega^2`), not the axis-decoupled
+        constant-velocity approximation.
+    sigma2 : variance of the discrete white acceleration per axis, **m²/s⁴** (direct-discrete,
+        :math:`\Gamma = \mathrm{blockdiag}([T^2/2, T]^\top)`; Li & Jilkov 2003).
+    """
+
+    omega: float = 0.0
+    ndim: int = 2
+    q: float | None = None
+    sigma2: float | None = None
+    noise: str = field(init=False)
+    _k = 2
+
+    def __post_init__(self):
+        object.__setattr__(self, "ndim", _ndim(self.ndim, (2, 3)))
+        arr = check_finite(as_float_array(self.omega, "omega"), "omega")
+        if arr.ndim != 0:
+            raise ValueError(f"omega must be a scalar turn rate (rad/s), got shape {arr.shape}")
+        object.__setattr__(self, "omega", float(arr))
+        noise = _one_of(self.q, self.sigma2)
+        object.__setattr__(self, "noise", noise)
+        name = "q" if noise == "continuous" else "sigma2"
+        object.__setattr__(self, name, _nonneg(getattr(self, name), name, 1)[0])
+
+    def F(self, dt) -> np.ndarray:
+        """Transition matrix, ``(..., n, n)``; exact at ``omega = 0`` (series branch)."""
+        d = _dt(dt)
+        Fh = _known_turn()["F"](d, self.omega)
+        return Fh if self.ndim == 2 else _block_diag([Fh, _kinematic(1)["F"](d)])
+
+    def Q(self, dt) -> np.ndarray:
+        """Process noise, ``(..., n, n)``: exact continuous white noise (``q``) or direct discrete (``sigma2``)."""
+        d = _dt(dt, nonnegative=True, what=" for the process noise Q(dt)")
+        if self.noise == "continuous":
+            Qh = self.q * _known_turn()["Qc"](d, self.omega)
+            return Qh if self.ndim == 2 else _block_diag([Qh, self.q * _kinematic(1)["Qc"](d)])
+        Qa = self.sigma2 * _kinematic(1)["Qd"](d)
+        return _block_diag([Qa] * self.ndim)
+
+
+@dataclass(frozen=True)
+class CoordinatedTurn:
+    r"""Nearly coordinated turn with the turn rate in the state (nonlinear; for the EKF).
+
+    State ``[x, vx, y, vy, omega]`` (2-D) or ``[x, vx, y, vy, z, vz, omega]`` (3-D, constant
+    velocity vertically); m, m/s, rad/s, counter-clockwise positive.
+    ``f(x, dt)`` applies :class:`KnownTurn`'s ``F`` with the state's own :math:`\omega`; its
+    Jacobian has the :math:`\omega` column (Bar-Shalom et al. 2001, §11.7), which tends
+    to :math:`[-T^2 v_y/2, -T v_y, T^2 v_x/2, T v_x]` as :math:`\omega \to 0` (series branch).
+
+    Parameters
+    ----------
+    ndim : 2 or 3.
+    sigma2, sigma2_omega : direct-discrete "nearly coordinated turn" noise (Bar-Shalom et al.
+        2001, §11.7): variances of the discrete white linear acceleration per axis
+        (**m²/s⁴**) and of the turn-rate acceleration (**rad²/s⁴**), with
+        :math:`\Gamma = [[T^2/2,0,0],[T,0,0],[0,T^2/2,0],[0,T,0],[0,0,T]]`.
+    q, q_omega : continuous white noise instead: spectral densities of the linear acceleration
+        (**m²/s³**) and of the turn-rate derivative (**rad²/s³**). ``Q`` is then
+        :math:`\mathrm{blockdiag}(q\,Q_{CV}, \dots, q_\omega T)`, the continuous-white-noise
+        ``Q`` of the model linearized at :math:`\omega = 0` (for the exact ``Q`` at a given
+        :math:`\omega` see :class:`KnownTurn`).
+
+    Give either (``sigma2``, ``sigma2_omega``) or (``q``, ``q_omega``).
+    """
+
+    ndim: int = 2
+    q: float | None = None
+    q_omega: float | None = None
+    sigma2: float | None = None
+    sigma2_omega: float | None = None
+    noise: str = field(init=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "ndim", _ndim(self.ndim, (2, 3)))
+        noise = _one_of(self.q, self.sigma2)
+        _one_of(self.q_omega, self.sigma2_omega, "q_omega", "sigma2_omega")
+        if (self.q_omega is None) != (noise == "discrete"):
+            raise ValueError("q_omega goes with q (continuous), sigma2_omega with sigma2 (discrete); "
+                             f"got q={self.q!r}, q_omega={self.q_omega!r}, sigma2={self.sigma2!r}, "
+                             f"sigma2_omega={self.sigma2_omega!r}")
+        object.__setattr__(self, "noise", noise)
+        for name in (("q", "q_omega") if noise == "continuous" else ("sigma2", "sigma2_omega")):
+            object.__setattr__(self, name, _nonneg(getattr(self, name), name, 1)[0])
+
+    @property
+    def n(self) -> int:
+        """State dimension (5 or 7)."""
+        return 2 * self.ndim + 1
+
+    @property
+    def H(self) -> np.ndarray:
+        """Position-measurement matrix, ``(ndim, n)``."""
+        return _position_selector(self.n, tuple(range(0, 2 * self.ndim, 2)))
+
+    def _call(self, key: str, x, dt) -> np.ndarray:
+        x = as_vector(x, "x", self.n)
+        d = _dt(dt)
+        return _coordinated_turn(self.ndim)[key](*np.moveaxis(x, -1, 0), d)
+
+    def f(self, x, dt) -> np.ndarray:
+        """Transition function, ``(..., n) -> (..., n)``; exact at ``omega = 0``."""
+        return self._call("f", x, dt)[..., 0]
+
+    def jacobian(self, x, dt) -> np.ndarray:
+        """Jacobian ``df/dx`` at ``x``, ``(..., n, n)``, including the ``omega`` column."""
+        return self._call("J", x, dt)
+
+    def F(self, dt, x) -> np.ndarray:
+        """State-dependent transition matrix ``F(dt, omega)`` with ``f(x, dt) = F(dt, x) @ x``
+        (the ``omega`` of ``x``; the ``omega`` column is ``[0, ..., 0, 1]``), ``(..., n, n)``."""
+        J = self.jacobian(x, dt)
+        J[..., :-1, -1] = 0.0
+        return J
+
+    def Q(self, dt) -> np.ndarray:
+        """Process noise, ``(..., n, n)`` (see the class for the two conventions)."""
+        d = _dt(dt, nonnegative=True, what=" for the process noise Q(dt)")
+        if self.noise == "continuous":
+            Qa = self.q * _kinematic(1)["Qc"](d)
+            return _block_diag([Qa] * self.ndim + [self.q_omega * d[..., None, None]])
+        Qa = self.sigma2 * _kinematic(1)["Qd"](d)
+        return _block_diag([Qa] * self.ndim + [self.sigma2_omega * (d * d)[..., None, None]])
+
+
+@dataclass(frozen=True)
+class CoordinatedTurnPolar:
+    r"""The same coordinated turn in polar-velocity form, state ``[x, y, v, h, omega]``
+    (m, m, m/s, rad, rad/s; heading ``h`` from +x, counter-clockwise):
+
+    .. math::
+
+        x^+ = x + \tfrac{2v}{\omega}\sin\tfrac{\omega T}{2}\cos\!\left(h + \tfrac{\omega T}{2}\right),\;
+        y^+ = y + \tfrac{2v}{\omega}\sin\tfrac{\omega T}{2}\sin\!\left(h + \tfrac{\omega T}{2}\right),\;
+        v^+ = v,\; h^+ = h + \omega T,\; \omega^+ = \omega .
+
+    Only the motion (``f``, ``jacobian``, ``H``); convert states with :func:`turn_state_to_polar`.
+    """
+
+    n: int = field(default=5, init=False)
+
+    @property
+    def H(self) -> np.ndarray:
+        """Position-measurement matrix, ``(2, 5)``."""
+        return _position_selector(5, (0, 1))
+
+    def f(self, x, dt) -> np.ndarray:
+        """Transition function, ``(..., 5) -> (..., 5)``; exact at ``omega = 0``."""
+        x = as_vector(x, "x", 5)
+        return _polar_turn()["f"](*np.moveaxis(x, -1, 0), _dt(dt))[..., 0]
+
+    def jacobian(self, x, dt) -> np.ndarray:
+        """Jacobian ``df/dx``, ``(..., 5, 5)``."""
+        x = as_vector(x, "x", 5)
+        return _polar_turn()["J"](*np.moveaxis(x, -1, 0), _dt(dt))
+
+
+def turn_state_to_polar(x) -> np.ndarray:
+    """``[x, vx, y, vy, omega]`` -> ``[x, y, v, h, omega]`` (speed, heading ``atan2(vy, vx)``)."""
+    x = as_vector(x, "x", 5)
+    return np.stack([x[..., 0], x[..., 2], np.hypot(x[..., 1], x[..., 3]),
+                     np.arctan2(x[..., 3], x[..., 1]), x[..., 4]], axis=-1)
+
+
+def turn_state_from_polar(s) -> np.ndarray:
+    """``[x, y, v, h, omega]`` -> ``[x, vx, y, vy, omega]``."""
+    s = as_vector(s, "s", 5)
+    return np.stack([s[..., 0], s[..., 2] * np.cos(s[..., 3]), s[..., 1],
+                     s[..., 2] * np.sin(s[..., 3]), s[..., 4]], axis=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# numerical discretization of any linear model
+# --------------------------------------------------------------------------------------------
+def van_loan(A, G, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    r"""Van Loan's (1978) method: ``F = expm(A dt)`` and the continuous-white-noise
+    :math:`Q = \int_0^{dt} e^{A\tau} G Q_c G^\top e^{A^\top\tau} d\tau` from one matrix exponential,
+
+    .. math::
+
+        \exp\left(\begin{bmatrix} -A & G Q_c G^\top \\ 0 & A^\top \end{bmatrix} dt\right)
+        = \begin{bmatrix} \cdot & F^{-1} Q \\ 0 & F^\top \end{bmatrix} .
+
+    Parameters
+    ----------
+    A : (n, n) continuous-time system matrix. G : (n, m) noise gain.
+    Qc : (m, m) spectral densities of the white noise. dt : interval (s), ``>= 0``.
+
+    Returns
+    -------
+    F, Q : (n, n) each.
+    """
+    A = as_matrix(A, "A")
+    n = A.shape[-1]
+    if A.shape != (n, n):
+        raise ValueError(f"A must have shape (n, n), got shape {A.shape}")
+    G = as_matrix(G, "G", n)
+    Qc = as_matrix(Qc, "Qc", G.shape[1], G.shape[1])
+    d = _dt(dt, nonnegative=True, what=" for the process noise")
+    if d.ndim != 0:
+        raise ValueError(f"dt must be a scalar, got shape {d.shape}")
+    M = np.zeros((2 * n, 2 * n))
+    M[:n, :n] = -A
+    M[:n, n:] = G @ Qc @ G.T
+    M[n:, n:] = A.T
+    E = scipy.linalg.expm(M * float(d))
+    F = E[n:, n:].T
+    Q = F @ E[:n, n:]
+    return F, 0.5 * (Q + Q.T)

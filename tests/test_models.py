@@ -1,0 +1,340 @@
+"""Tests of kftrack.models: F and Q against closed forms, Van Loan (scipy.linalg.expm) and
+filterpy (test-only oracle); the singular points (omega = 0, Singer alpha*T -> 0) exactly and
+across the series switch; Jacobians against 8th-order central differences; negative dt;
+batch broadcasting; bad input; symmetry, PSD and rank of every Q (hypothesis)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from filterpy.common import Q_continuous_white_noise, Q_discrete_white_noise
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from kftrack import models as M
+
+EPS = np.finfo(float).eps
+RNG = np.random.default_rng(20261122)
+
+
+def rel(a, b):
+    return np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300)
+
+
+def jac_fd(f, x, h):
+    """8th-order central differences, column by column (error ~ h^8 + eps/h)."""
+    c = np.array([1 / 280, -4 / 105, 1 / 5, -4 / 5, 0, 4 / 5, -1 / 5, 4 / 105, -1 / 280])
+    n = x.shape[-1]
+    J = np.zeros((n, n))
+    for j in range(n):
+        e = np.zeros(n)
+        e[j] = h[j]
+        J[:, j] = sum(ck * f(x + k * e) for ck, k in zip(c, range(-4, 5)) if ck) / h[j]
+    return J
+
+
+A_CV = np.array([[0.0, 1.0], [0.0, 0.0]])
+A_CA = np.diag([1.0, 1.0], 1)
+
+
+def a_turn(w):
+    return np.array([[0, 1, 0, 0], [0, 0, 0, -w], [0, 0, 0, 1], [0, w, 0, 0]], dtype=float)
+
+
+# ------------------------------------------------------------------------------------------
+# linear models against closed forms, Van Loan and filterpy
+# ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("ndim", [1, 2, 3])
+def test_cv_ca_against_filterpy(ndim):
+    for dt, q in zip(RNG.uniform(0.01, 10, 5), RNG.uniform(0.01, 10, 5)):
+        cv = M.ConstantVelocity(ndim=ndim, q=q)
+        assert rel(cv.Q(dt), Q_continuous_white_noise(2, dt, q, block_size=ndim)) < 10 * EPS
+        assert rel(M.ConstantVelocity(ndim=ndim, sigma2=q).Q(dt), Q_discrete_white_noise(2, dt, q, block_size=ndim)) < 10 * EPS
+        ca = M.ConstantAcceleration(ndim=ndim, q=q)
+        assert rel(ca.Q(dt), Q_continuous_white_noise(3, dt, q, block_size=ndim)) < 10 * EPS
+        assert rel(M.ConstantAcceleration(ndim=ndim, sigma2=q).Q(dt), Q_discrete_white_noise(3, dt, q, block_size=ndim)) < 10 * EPS
+        Fa = np.array([[1, dt, dt**2 / 2], [0, 1, dt], [0, 0, 1]])
+        assert np.array_equal(ca.F(dt), np.kron(np.eye(ndim), Fa))
+        assert np.array_equal(cv.F(dt), np.kron(np.eye(ndim), Fa[:2, :2]))
+        assert cv.H.shape == (ndim, 2 * ndim) and np.array_equal(cv.H @ cv.F(0.0), cv.H)
+
+
+def test_per_axis_noise_and_van_loan():
+    cv = M.ConstantVelocity(ndim=2, q=[1.0, 4.0])
+    F, Q = M.van_loan(A_CV, np.array([[0.0], [1.0]]), [[4.0]], 3.0)
+    assert rel(cv.Q(3.0)[2:, 2:], Q) < 10 * EPS and rel(cv.F(3.0)[2:, 2:], F) < 10 * EPS
+    for dt in RNG.uniform(0.01, 20, 5):
+        F, Q = M.van_loan(A_CA, np.array([[0.0], [0.0], [1.0]]), [[1.0]], dt)
+        ca = M.ConstantAcceleration(q=1.0)
+        assert rel(ca.F(dt), F) < 100 * EPS and rel(ca.Q(dt), Q) < 1e3 * EPS
+
+
+def test_singer_against_van_loan():
+    for tau, dt in zip(RNG.uniform(0.5, 60, 8), RNG.uniform(0.05, 20, 8)):
+        al = 1 / tau
+        A = np.array([[0, 1, 0], [0, 0, 1], [0, 0, -al]])
+        F, Q = M.van_loan(A, np.array([[0.0], [0.0], [1.0]]), [[2.0]], dt)
+        s = M.Singer(tau=tau, q=2.0)
+        assert rel(s.F(dt), F) < 1e3 * EPS
+        assert rel(s.Q(dt), Q) < 1e4 * EPS
+    s = M.Singer(tau=10.0, ndim=2, sigma2_a=3.0)
+    assert s.q == (0.6, 0.6)
+    assert M.singer_acceleration_variance(3.0, 0.1, 0.2) == pytest.approx(3.0 * 1.2)
+
+
+def test_singer_small_alpha_tends_to_constant_acceleration():
+    ca = M.ConstantAcceleration(q=1.0)
+    s_inf = M.Singer(tau=np.inf, q=1.0)
+    assert np.array_equal(s_inf.F(5.0), ca.F(5.0)) and rel(s_inf.Q(5.0), ca.Q(5.0)) < 2 * EPS
+    # Stone Soup's table (T = 5, q = 1): correct to 4 digits at alpha = 0.1 ...
+    s = M.Singer(tau=10.0, q=1.0)
+    assert round(s.F(5.0)[0, 2], 2) == 10.65 and round(s.Q(5.0)[0, 0], 1) == 119.6
+    # ... and where it returns 14 and 39412 (alpha = 1e-8, 1e-9) we tend to 12.5 and 156.25:
+    for al in (1e-6, 1e-8, 1e-9, 1e-12):
+        s = M.Singer(tau=1 / al, q=1.0)
+        # first-order terms of the series: F02 = T^2/2 - alpha T^3/6, Q00 = T^5/20 - alpha T^6/36
+        assert abs(s.F(5.0)[0, 2] - 12.5) < 5**3 / 6 * al * 1.01 + 4 * EPS * 12.5
+        assert abs(s.Q(5.0)[0, 0] - 156.25) < 5**6 / 36 * al * 1.01 + 4 * EPS * 156.25
+
+
+def branches_agree(gen, args, tol):
+    """Both branches of a generated function at the same point on the switch, entrywise."""
+    ex, se = gen.exact(*args), gen.series(*args)
+    scale = np.max(np.abs(ex))
+    assert np.all(np.abs(ex - se) <= tol * scale), np.max(np.abs(ex - se)) / scale
+
+
+def test_singer_continuous_across_switch():
+    thr = M.SINGER_SERIES_THRESHOLD
+    for dt in (0.5, 5.0, -2.0):
+        al = thr / abs(dt)
+        # the closed form at |alpha T| = 1 cancels to (aT)^5/20 in Q[0,0]: ~20 eps relative
+        branches_agree(M._singer()["F"], (dt, al), 20 * EPS)
+        if dt > 0:
+            branches_agree(M._singer()["Qc"], (dt, al), 50 * EPS)
+        # and the public function takes the series strictly below the threshold
+        for t in np.abs(dt) / thr * (1 + np.array([-4, -2, -1, 0, 1, 2, 4]) * EPS):
+            m = M.Singer(tau=t, q=1.0)
+            gen = M._singer()["F"]
+            branch = gen.series if abs(m.alpha * dt) < thr else gen.exact
+            assert np.array_equal(m.F(dt), branch(dt, m.alpha))
+
+
+def test_known_turn_exact_noise_reference_values():
+    kt = M.KnownTurn(omega=np.deg2rad(3.0), q=1.0)
+    Q = kt.Q(5.0)
+    # stonesoup_models.md 1.10 item 4 (exact, 3 decimals); Stone Soup's decoupled Q: 41.667, 12.5, 0
+    assert [round(Q[0, 0], 3), round(Q[0, 1], 3), round(Q[0, 3], 3), round(Q[1, 2], 3)] == [41.524, 12.429, 1.087, -1.087]
+    assert np.allclose(M.ConstantVelocity(ndim=2, q=1.0).Q(5.0)[0, :2], [41.667, 12.5], atol=5e-4)
+
+
+@pytest.mark.parametrize("omega", [-0.7, -0.05, 0.01, 0.3, 1.3])
+def test_known_turn_against_van_loan(omega):
+    for dt in (0.1, 1.0, 4.0):
+        F, Q = M.van_loan(a_turn(omega), np.array([[0, 0], [1, 0], [0, 0], [0, 1.0]]), 2.5 * np.eye(2), dt)
+        kt = M.KnownTurn(omega=omega, q=2.5)
+        assert rel(kt.F(dt), F) < 100 * EPS and rel(kt.Q(dt), Q) < 1e3 * EPS
+    kt3 = M.KnownTurn(omega=omega, ndim=3, q=2.5)
+    assert np.array_equal(kt3.F(2.0)[:4, :4], M.KnownTurn(omega=omega, q=2.5).F(2.0))
+    assert np.array_equal(kt3.Q(2.0)[4:, 4:], M.ConstantVelocity(q=2.5).Q(2.0))
+
+
+def test_known_turn_at_zero_and_across_switch():
+    cv = M.ConstantVelocity(ndim=2, q=1.0)
+    kt0 = M.KnownTurn(omega=0.0, q=1.0)
+    for dt in (0.3, 7.0):
+        assert np.array_equal(kt0.F(dt), cv.F(dt))
+        assert rel(kt0.Q(dt), cv.Q(dt)) < 2 * EPS
+        w = M.TURN_SERIES_THRESHOLD / dt
+        # closed form at |omega T| = 0.5: (omega T - sin omega T) cancels, ~ eps/(omega T)^2 = 4 eps
+        branches_agree(M._known_turn()["F"], (dt, w), 16 * EPS)
+        branches_agree(M._known_turn()["Qc"], (dt, -w), 16 * EPS)
+    assert rel(M.KnownTurn(0.0, sigma2=2.0).Q(3.0), M.ConstantVelocity(ndim=2, sigma2=2.0).Q(3.0)) == 0
+
+
+def test_turns_conserve_speed_and_invert():
+    kt = M.KnownTurn(omega=0.2, q=1.0)
+    x = np.array([10.0, 30.0, -5.0, 40.0])
+    F = kt.F(0.5)
+    xs = [x]
+    for _ in range(1000):
+        xs.append(F @ xs[-1])
+    speed = np.hypot(np.array(xs)[:, 1], np.array(xs)[:, 3])
+    assert np.max(np.abs(speed - 50.0)) < 1000 * 4 * EPS * 50  # worst case: a few ulps per rotation
+    for model in (kt, M.ConstantAcceleration(ndim=3, q=1.0), M.Singer(tau=3.0, ndim=2, q=1.0)):
+        assert np.allclose(model.F(-1.7) @ model.F(1.7), np.eye(model.n), atol=1e-13)
+        with pytest.raises(ValueError, match="dt"):
+            model.Q(-1.0)
+
+
+# ------------------------------------------------------------------------------------------
+# the nonlinear coordinated turn
+# ------------------------------------------------------------------------------------------
+CT2 = M.CoordinatedTurn(sigma2=1.0, sigma2_omega=1e-4)
+CT3 = M.CoordinatedTurn(ndim=3, q=1.0, q_omega=1e-4)
+
+
+def test_ct_jacobian_at_zero_exact():
+    # stonesoup_models.md 1.10 item 1: finite differences give [0, -50, 0, 100]
+    J = CT2.jacobian(np.array([0.0, 100.0, 0.0, 50.0, 0.0]), 1.0)
+    assert np.array_equal(J[:4, 4], [-25.0, -50.0, 50.0, 100.0])
+    for dt in (-2.0, 0.3, 5.0):
+        x = RNG.normal(size=5) * [100, 30, 100, 30, 0]
+        J = CT2.jacobian(x, dt)
+        vx, vy = x[1], x[3]
+        assert np.allclose(J[:4, 4], [-dt**2 * vy / 2, -dt * vy, dt**2 * vx / 2, dt * vx], rtol=4 * EPS, atol=0)
+        assert np.array_equal(CT2.f(x, dt)[:4], M.ConstantVelocity(ndim=2, q=1.0).F(dt) @ x[:4])
+
+
+@pytest.mark.parametrize("model", [CT2, CT3, M.CoordinatedTurnPolar()], ids=["ct2", "ct3", "polar"])
+def test_jacobians_against_finite_differences(model):
+    for omega in (0.0, 1e-7, 0.1, 0.4, 0.9):  # both sides of the switch |omega dt| = 0.5 at dt = 1
+        x = RNG.normal(size=model.n) * 20
+        x[-1] = omega
+        if isinstance(model, M.CoordinatedTurnPolar):
+            x[2] = abs(x[2])
+        h = np.full(model.n, 1e-2)
+        J = model.jacobian(x, 1.0)
+        Jfd = jac_fd(lambda v: model.f(v, 1.0), x, h)
+        assert rel(J, Jfd) < 1e-10, omega
+
+
+def test_ct_across_switch_and_inverse_and_speed():
+    thr = M.TURN_SERIES_THRESHOLD
+    x = np.array([1.0, 30.0, 2.0, -40.0, 0.0])
+    for dt in (0.2, 3.0, -1.0):
+        x[4] = thr / dt
+        # the d/domega entries cancel as eps/(omega T)^2 = 4 eps relative at the switch
+        for key in ("f", "J"):
+            branches_agree(M._coordinated_turn(2)[key], (*x, dt), 16 * EPS)
+            branches_agree(M._coordinated_turn(3)[key], (*x[:4], 5.0, -2.0, x[4], dt), 16 * EPS)
+    x = np.array([1.0, 30.0, 2.0, -40.0, 0.0])
+    x[4] = 0.3
+    assert np.allclose(CT2.f(CT2.f(x, 2.0), -2.0), x, rtol=0, atol=1e-12 * 50)
+    assert np.allclose(CT2.F(2.0, x) @ x, CT2.f(x, 2.0), rtol=4 * EPS)
+    y = x
+    for _ in range(500):
+        y = CT2.f(y, 0.7)
+    assert abs(np.hypot(y[1], y[3]) - 50.0) < 500 * 4 * EPS * 50
+
+
+def test_polar_is_the_same_motion():
+    pol = M.CoordinatedTurnPolar()
+    x = RNG.normal(size=(6, 5)) * [50, 20, 50, 20, 0.2]
+    x[0, 4] = 0.0
+    lhs = M.turn_state_to_polar(CT2.f(x, 1.5))
+    rhs = pol.f(M.turn_state_to_polar(x), 1.5)
+    rhs[:, 3] = np.angle(np.exp(1j * rhs[:, 3]))
+    assert np.allclose(lhs, rhs, rtol=0, atol=1e-12 * 100)
+    assert np.allclose(M.turn_state_from_polar(M.turn_state_to_polar(x)), x, atol=1e-12 * 50)
+
+
+def test_ct_noise_conventions():
+    dt = 2.0
+    Q = CT2.Q(dt)
+    G = np.array([[dt**2 / 2, 0, 0], [dt, 0, 0], [0, dt**2 / 2, 0], [0, dt, 0], [0, 0, dt]])
+    assert rel(Q, G @ np.diag([1.0, 1.0, 1e-4]) @ G.T) < 4 * EPS
+    assert np.linalg.matrix_rank(Q) == 3
+    Q3 = CT3.Q(dt)
+    assert rel(Q3[:6, :6], Q_continuous_white_noise(2, dt, 1.0, block_size=3)) < 10 * EPS
+    assert Q3[6, 6] == pytest.approx(2e-4) and np.linalg.matrix_rank(Q3) == 7
+
+
+# ------------------------------------------------------------------------------------------
+# broadcasting, bad input, properties
+# ------------------------------------------------------------------------------------------
+def test_broadcasting_over_batches():
+    x = RNG.normal(size=(4, 3, 5)) * [10, 5, 10, 5, 0.3]
+    x[0, 0, 4] = 0.0
+    dt = np.array([[0.5], [1.0], [2.0], [-1.0]])
+    f = CT2.f(x, dt)
+    J = CT2.jacobian(x, dt)
+    assert f.shape == (4, 3, 5) and J.shape == (4, 3, 5, 5)
+    for i in range(4):
+        for j in range(3):
+            assert np.array_equal(f[i, j], CT2.f(x[i, j], dt[i, 0]))
+            assert np.array_equal(J[i, j], CT2.jacobian(x[i, j], dt[i, 0]))
+    cv = M.ConstantVelocity(ndim=2, q=1.0)
+    xs = x[..., :4]
+    assert cv.F(dt).shape == (4, 1, 4, 4) and cv.Q(np.abs(dt)).shape == (4, 1, 4, 4)
+    assert np.allclose(cv.f(xs, dt)[2, 1], cv.F(2.0) @ xs[2, 1], rtol=4 * EPS)
+    assert cv.jacobian(xs, dt).shape == (4, 3, 4, 4)
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: M.ConstantVelocity(ndim=4, q=1.0), "ndim"),
+    (lambda: M.ConstantVelocity(ndim=2), "exactly one"),
+    (lambda: M.ConstantVelocity(ndim=2, q=1.0, sigma2=1.0), "exactly one"),
+    (lambda: M.ConstantVelocity(ndim=2, q=-1.0), "q must be >= 0"),
+    (lambda: M.ConstantAcceleration(ndim=2, sigma2=[1.0, 2.0, 3.0]), "sigma2 must be a scalar or have shape"),
+    (lambda: M.Singer(tau=0.0, q=1.0), "tau"),
+    (lambda: M.Singer(tau=2.0, q=1.0, sigma2_a=1.0), "sigma2_a"),
+    (lambda: M.KnownTurn(omega=[0.1, 0.2], q=1.0), "omega"),
+    (lambda: M.KnownTurn(omega=np.nan, q=1.0), "omega"),
+    (lambda: M.KnownTurn(omega=0.1, ndim=1, q=1.0), "ndim"),
+    (lambda: M.CoordinatedTurn(q=1.0, sigma2_omega=1.0), "q_omega"),
+    (lambda: M.CoordinatedTurn(sigma2=1.0), "sigma2_omega"),
+    (lambda: M.ConstantVelocity(q=1.0).F("soon"), "dt"),
+    (lambda: M.ConstantVelocity(q=1.0).F(np.inf), "dt"),
+    (lambda: M.ConstantVelocity(q=1.0).f(np.zeros(3), 1.0), r"x must have shape \(\.\.\., 2\)"),
+    (lambda: CT2.jacobian(np.zeros(4), 1.0), "x must have shape"),
+    (lambda: M.van_loan(np.zeros((2, 3)), np.zeros((2, 1)), np.eye(1), 1.0), "A must"),
+    (lambda: M.van_loan(A_CV, np.zeros((2, 1)), np.eye(2), 1.0), "Qc must"),
+])
+def test_bad_input_names_the_argument(make, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        make()
+
+
+def _models(w, tau):
+    return [M.ConstantVelocity(ndim=2, q=1.3), M.ConstantVelocity(ndim=3, sigma2=0.7),
+            M.ConstantAcceleration(q=2.0), M.ConstantAcceleration(ndim=2, sigma2=0.4),
+            M.Singer(tau=tau, ndim=2, q=0.9), M.KnownTurn(omega=w, q=1.1), M.KnownTurn(omega=w, ndim=3, sigma2=1.0),
+            CT2, CT3]
+
+
+@settings(max_examples=60, deadline=None)
+@given(dt=st.floats(1e-3, 30.0), w=st.floats(-2.0, 2.0), tau=st.floats(0.05, 1e6))
+def test_q_symmetric_psd_with_the_right_rank(dt, w, tau):
+    for m in _models(w, tau):
+        Q = m.Q(dt)
+        scale = np.max(np.abs(Q))
+        assert np.array_equal(Q, Q.T) or rel(Q, Q.T) < 4 * EPS
+        eig = np.linalg.eigvalsh(Q)
+        assert eig[0] >= -1e3 * EPS * scale
+    # ranks: direct-discrete Q has rank = number of noise inputs, continuous is full rank
+    if dt > 0.05:
+        assert np.linalg.matrix_rank(M.ConstantVelocity(ndim=3, sigma2=0.7).Q(dt)) == 3
+        assert np.linalg.matrix_rank(M.ConstantAcceleration(ndim=2, sigma2=0.4).Q(dt)) == 2
+        assert np.linalg.matrix_rank(M.ConstantVelocity(ndim=2, q=1.3).Q(dt)) == 4
+
+
+# ------------------------------------------------------------------------------------------
+# Stone Soup (test-only oracle) in its valid range; its defects at the singular points are
+# what the tests above check we do not have
+# ------------------------------------------------------------------------------------------
+def test_against_stone_soup():
+    import datetime
+
+    from stonesoup.models.transition import linear as ss
+
+    rng = np.random.default_rng(7)
+    for dt, q in zip(np.round(rng.uniform(0.05, 10, 6), 6) * [1, -1, 1, -1, 1, 1], rng.uniform(0.1, 5, 6)):
+        dt = float(dt)  # rounded to whole microseconds, what a timedelta holds
+        ti = datetime.timedelta(seconds=dt)
+        ad = abs(dt)
+        cv, ca = M.ConstantVelocity(q=q), M.ConstantAcceleration(q=q)
+        assert rel(cv.F(dt), ss.ConstantVelocity(q).matrix(time_interval=ti)) < 10 * EPS
+        assert rel(cv.Q(ad), ss.ConstantVelocity(q).covar(time_interval=ti)) < 10 * EPS  # Stone Soup uses |dt| in Q
+        assert rel(ca.F(dt), ss.ConstantAcceleration(q).matrix(time_interval=ti)) < 10 * EPS
+        assert rel(ca.Q(ad), ss.ConstantAcceleration(q).covar(time_interval=ti)) < 10 * EPS
+        for al in (0.05, 0.7, 3.0):
+            sg = ss.Singer(noise_diff_coeff=q, damping_coeff=al)
+            ours = M.Singer(tau=1 / al, q=q)
+            assert rel(ours.F(dt), sg.matrix(time_interval=ti)) < 1e3 * EPS
+            if dt > 0:  # for dt < 0 Stone Soup's Singer Q integrates e^{+alpha|t|}: neither Q(|dt|) nor a backward Q
+                assert rel(ours.Q(dt), sg.covar(time_interval=ti)) < 1e-8  # Stone Soup integrates Q by quadrature
+        for w in (-0.4, 0.02, 0.3):
+            kt = ss.KnownTurnRate(turn_noise_diff_coeffs=[q, q], turn_rate=w)
+            assert rel(M.KnownTurn(omega=w, q=q).F(dt), kt.matrix(time_interval=ti)) < 100 * EPS
+            # Stone Soup's Q is the axis-decoupled CV approximation: ours is its omega -> 0 limit
+            assert rel(M.ConstantVelocity(ndim=2, q=q).Q(ad), kt.covar(time_interval=ti)) < 10 * EPS
