@@ -105,14 +105,26 @@ def _predict(x, P, F, Q):
     return _mv(F, x), _sym(F @ P @ _T(F) + Q)
 
 
-def _update(x, P, z, H, R) -> Update:
+_FORMS = ("joseph", "standard")
+
+
+def _check_form(form) -> str:
+    if form not in _FORMS:
+        raise ValueError(f"form must be one of {_FORMS} (covariance update), got {form!r}")
+    return form
+
+
+def _update(x, P, z, H, R, form: str = "joseph") -> Update:
     y = z - _mv(H, x)
     PHt = P @ _T(H)
     S = _sym(H @ PHt + R)
     K = _T(np.linalg.solve(S, _T(PHt)))  # S symmetric: K^T = S^{-1} H P
     x_post = x + _mv(K, y)
     I_KH = np.eye(x.shape[-1]) - K @ H
-    P_post = _sym(I_KH @ P @ _T(I_KH) + K @ R @ _T(K))
+    if form == "joseph":
+        P_post = _sym(I_KH @ P @ _T(I_KH) + K @ R @ _T(K))
+    else:  # "standard": the short form (I - KH) P, as computed (not symmetrized)
+        P_post = I_KH @ P
     Sinv_y = np.linalg.solve(S, y[..., None])[..., 0]
     nis = np.einsum("...i,...i->...", y, Sinv_y)
     _, logdet = np.linalg.slogdet(S)
@@ -148,8 +160,8 @@ def predict(x, P, F, Q) -> tuple[np.ndarray, np.ndarray]:
     return _predict(x, P, F, Q)
 
 
-def update(x, P, z, H, R) -> Update:
-    r"""Measurement update in Joseph form.
+def update(x, P, z, H, R, *, form: str = "joseph") -> Update:
+    r"""Measurement update, by default with the Joseph-form covariance.
 
     Parameters
     ----------
@@ -158,19 +170,23 @@ def update(x, P, z, H, R) -> Update:
     z : (..., m) measurement.
     H : (m, n) or (..., m, n) measurement matrix.
     R : (m, m) or (..., m, m) measurement-noise covariance, positive definite.
+    form : ``"joseph"`` (default), :math:`P^+ = (I-KH)P^-(I-KH)^\top + KRK^\top`, symmetrized;
+        or ``"standard"``, the short form :math:`P^+ = (I-KH)P^-` returned exactly as computed
+        (not symmetrized), to study its round-off (Grewal & Andrews 2001).
 
     Returns
     -------
     Update
         ``(x, P, y, S, K, nis, loglik)``; see :class:`Update`.
     """
+    form = _check_form(form)
     x, P, n = _check_state(x, P)
     z = as_vector(z, "z")
     m = z.shape[-1]
     H = as_matrix(H, "H", m, n)
     R = check_covariance(R, "R", m, positive_definite=True)
     _batch({"x": x.shape[:-1], "P": P.shape[:-2], "z": z.shape[:-1], "H": H.shape[:-2], "R": R.shape[:-2]})
-    return _update(x, P, z, H, R)
+    return _update(x, P, z, H, R, form)
 
 
 def kalman_filter(zs, x0, P0, F, Q, H, R) -> FilterResult:
