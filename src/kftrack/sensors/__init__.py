@@ -1,0 +1,1 @@
+"""Sensor models and sensor data: one module per sensor family."""
