@@ -55,8 +55,8 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"Python {platform.python_version()}, NumPy {np.__version__}")
     print(f"{RUNS} runs x {STEPS} steps, 2-D constant velocity (n = 4, m = 2)")
-    print(f"| path | time (s) | per run-step (us) |")
-    print(f"|---|---|---|")
+    print("| path | time (s) | per run-step (us) |")
+    print("|---|---|---|")
     print(f"| batch: one call, broadcast over runs | {best_batch:.2f} | {1e6 * best_batch / (RUNS * STEPS):.2f} |")
     print(f"| loop: one call per run | {t_loop:.2f} | {1e6 * t_loop / (RUNS * STEPS):.2f} |")
     print(f"speed-up: {t_loop / best_batch:.0f}x")

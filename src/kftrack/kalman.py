@@ -189,23 +189,11 @@ def update(x, P, z, H, R, *, form: str = "joseph") -> Update:
     return _update(x, P, z, H, R, form)
 
 
-def kalman_filter(zs, x0, P0, F, Q, H, R) -> FilterResult:
-    """Filter a whole measurement sequence: at each step update with ``zs[k]``, then predict.
+def _check_sequence(zs, x0, P0, Q, R):
+    """Boundary checks shared by the whole-sequence filters (KF, EKF, UKF).
 
-    A measurement row that is all NaN means "no measurement at this step": the filter only
-    predicts across it. Validation happens once here; the loop runs unchecked kernels.
-
-    Parameters
-    ----------
-    zs : (T, ..., m) measurements, time first; rows of NaN mark missing measurements.
-    x0 : (..., n) prior mean for step 0 (before ``zs[0]``).
-    P0 : (..., n, n) prior covariance for step 0.
-    F, Q, H, R : as in :func:`predict` and :func:`update`, constant over time.
-
-    Returns
-    -------
-    FilterResult
-        priors and posteriors ``(T, ..., n)``, ``(T, ..., n, n)``; ``nis``, ``loglik`` ``(T, ...)``.
+    Returns ``zs, x0, P0, Q, R, n, m, batch, row_missing`` where ``row_missing`` ``(T, ...)``
+    marks the all-NaN measurement rows.
     """
     x0, P0, n = _check_state(x0, P0)
     zs = as_vector(zs, "zs", allow_nan=True)
@@ -219,13 +207,18 @@ def kalman_filter(zs, x0, P0, F, Q, H, R) -> FilterResult:
         k = int(np.argwhere(partial)[0][0])
         raise ValueError(f"zs has a row at step {k} that is only partly NaN; a missing measurement is a row of NaN")
     m = zs.shape[-1]
-    F = as_matrix(F, "F", n, n)
     Q = check_covariance(Q, "Q", n)
-    H = as_matrix(H, "H", m, n)
     R = check_covariance(R, "R", m, positive_definite=True)
-    batch = _batch({"zs[k]": zs.shape[1:-1], "x0": x0.shape[:-1], "P0": P0.shape[:-2], "F": F.shape[:-2],
-                    "Q": Q.shape[:-2], "H": H.shape[:-2], "R": R.shape[:-2]})
-    T = zs.shape[0]
+    batch = _batch({"zs[k]": zs.shape[1:-1], "x0": x0.shape[:-1], "P0": P0.shape[:-2],
+                    "Q": Q.shape[:-2], "R": R.shape[:-2]})
+    return zs, x0, P0, Q, R, n, m, batch, missing.all(-1)
+
+
+def _run_sequence(zs, x0, P0, batch, row_missing, predict, update, progress: bool = False) -> FilterResult:
+    """The time loop of every whole-sequence filter: at step ``k`` update with ``zs[k]`` (unless
+    the row is missing), then predict. ``predict(x, P) -> (x, P)``, ``update(x, P, z) -> Update``
+    are unchecked kernels; ``progress`` shows a tqdm bar."""
+    T, n = zs.shape[0], x0.shape[-1]
     x = np.broadcast_to(x0, batch + (n,)).copy()
     P = np.broadcast_to(P0, batch + (n, n)).copy()
     out_xp = np.empty((T,) + batch + (n,))
@@ -233,20 +226,52 @@ def kalman_filter(zs, x0, P0, F, Q, H, R) -> FilterResult:
     out_x, out_P = np.empty_like(out_xp), np.empty_like(out_Pp)
     out_nis = np.full((T,) + batch, np.nan)
     out_ll = np.full((T,) + batch, np.nan)
-    row_missing = missing.all(-1)
-    for k in range(T):
+    steps = range(T)
+    if progress:
+        from tqdm.auto import tqdm  # only when asked for
+
+        steps = tqdm(steps, desc="filter", unit="step")
+    for k in steps:
         out_xp[k], out_Pp[k] = x, P
         gone = np.broadcast_to(row_missing[k], batch)
         if not gone.all():
             z = np.where(gone[..., None], 0.0, zs[k])
-            upd = _update(x, P, z, H, R)
+            upd = update(x, P, z)
             x = np.where(gone[..., None], x, upd.x)
             P = np.where(gone[..., None, None], P, upd.P)
             out_nis[k] = np.where(gone, np.nan, upd.nis)
             out_ll[k] = np.where(gone, np.nan, upd.loglik)
         out_x[k], out_P[k] = x, P
-        x, P = _predict(x, P, F, Q)
+        x, P = predict(x, P)
     return FilterResult(out_xp, out_Pp, out_x, out_P, out_nis, out_ll)
+
+
+def kalman_filter(zs, x0, P0, F, Q, H, R, *, progress: bool = False) -> FilterResult:
+    """Filter a whole measurement sequence: at each step update with ``zs[k]``, then predict.
+
+    A measurement row that is all NaN means "no measurement at this step": the filter only
+    predicts across it. Validation happens once here; the loop runs unchecked kernels.
+
+    Parameters
+    ----------
+    zs : (T, ..., m) measurements, time first; rows of NaN mark missing measurements.
+    x0 : (..., n) prior mean for step 0 (before ``zs[0]``).
+    P0 : (..., n, n) prior covariance for step 0.
+    F, Q, H, R : as in :func:`predict` and :func:`update`, constant over time.
+    progress : show a progress bar (tqdm) over the time steps.
+
+    Returns
+    -------
+    FilterResult
+        priors and posteriors ``(T, ..., n)``, ``(T, ..., n, n)``; ``nis``, ``loglik`` ``(T, ...)``.
+    """
+    zs, x0, P0, Q, R, n, m, batch, row_missing = _check_sequence(zs, x0, P0, Q, R)
+    F = as_matrix(F, "F", n, n)
+    H = as_matrix(H, "H", m, n)
+    batch = _batch({"zs, x0, P0, Q, R": batch, "F": F.shape[:-2], "H": H.shape[:-2]})
+    return _run_sequence(zs, x0, P0, batch, row_missing,
+                         lambda x, P: _predict(x, P, F, Q),
+                         lambda x, P, z: _update(x, P, z, H, R), progress)
 
 
 def rts_smoother(result: FilterResult, F) -> SmootherResult:

@@ -96,3 +96,173 @@ def chi2_bounds(dof: int, runs: int = 1, confidence: float = 0.95, *, normalize:
     if normalize:
         lo, hi = lo / dof, hi / dof
     return float(lo), float(hi)
+
+
+# --------------------------------------------------------------------------------------------
+# Monte Carlo consistency tests and the posterior Cramér–Rao lower bound (nonlinear filtering)
+# --------------------------------------------------------------------------------------------
+from typing import NamedTuple as _NamedTuple  # noqa: E402
+
+from ._validate import as_matrix as _as_matrix  # noqa: E402
+
+__all__ += ["Consistency", "consistency", "PCRLB", "pcrlb"]
+
+
+class Consistency(_NamedTuple):
+    r"""Monte Carlo consistency test of a chi-square statistic (NEES or NIS).
+
+    Attributes
+    ----------
+    mean : (T,) average over the runs at each step (NaN where no run has a value).
+    bounds : ``(lower, upper)`` acceptance interval of ``mean`` at one step, from
+        :func:`chi2_bounds` with ``runs`` runs.
+    inside : fraction of the steps whose ``mean`` lies inside ``bounds``; about
+        ``confidence`` for a consistent filter.
+    time_average : the average over all steps and runs.
+    time_bounds : ``(lower, upper)`` interval of ``time_average`` for ``runs * steps``
+        independent values (exact for NIS, whose values are white in time for a consistent
+        filter; optimistic, i.e. too narrow, for NEES, whose values are correlated in time).
+    dof, runs, steps : degrees of freedom, runs ``N`` and steps ``T`` used.
+    """
+
+    mean: np.ndarray
+    bounds: tuple[float, float]
+    inside: float
+    time_average: float
+    time_bounds: tuple[float, float]
+    dof: int
+    runs: int
+    steps: int
+
+
+def consistency(values, dof: int, confidence: float = 0.95) -> Consistency:
+    r"""Time-averaged NEES/NIS test over Monte Carlo runs (Bar-Shalom, Li & Kirubarajan 2001, §5.4).
+
+    Parameters
+    ----------
+    values : (T, N) NEES or NIS values, time first, one column per Monte Carlo run. A row of
+        NaN (a step without a measurement) is skipped.
+    dof : degrees of freedom of each value (``n`` for NEES, ``m`` for NIS).
+    confidence : two-sided probability of the acceptance intervals.
+
+    Returns
+    -------
+    Consistency
+        per-step averages with their :math:`\chi^2_{N d}/N` bounds, and the time average with
+        its :math:`\chi^2_{N T d}/(N T)` bounds.
+    """
+    v = np.asarray(values, dtype=float)
+    if v.ndim != 2:
+        raise ValueError(f"values must have shape (T, N): time first, one column per run; got shape {v.shape}")
+    if np.isinf(v).any() or (v < 0).any():
+        raise ValueError("values must be non-negative NEES/NIS values (NaN rows for missing steps)")
+    nan = np.isnan(v)
+    partial = nan.any(1) & ~nan.all(1)
+    if partial.any():
+        raise ValueError(f"values has a row at step {int(np.argmax(partial))} that is only partly NaN")
+    kept = v[~nan.all(1)]
+    if kept.size == 0:
+        raise ValueError("values has no finite row")
+    steps, runs = kept.shape
+    bounds = chi2_bounds(dof, runs, confidence)
+    mean = np.full(v.shape[0], np.nan)
+    mean[~nan.all(1)] = kept.mean(axis=1)
+    m = kept.mean(axis=1)
+    inside = float(np.mean((m >= bounds[0]) & (m <= bounds[1])))
+    return Consistency(mean, bounds, inside, float(kept.mean()), chi2_bounds(dof, runs * steps, confidence),
+                       int(dof), runs, steps)
+
+
+class PCRLB(_NamedTuple):
+    """Posterior Cramér–Rao lower bounds, time first: ``P_prior`` ``(T, ..., n, n)`` bounds the
+    one-step prediction error covariance (before measurement ``k``), ``P`` the filtered one,
+    and ``J = inv(P)`` is the Fisher information."""
+
+    P_prior: np.ndarray
+    P: np.ndarray
+    J: np.ndarray
+
+
+def _sequence(value, name: str, steps: int, rows: int, cols: int, lengths: tuple[int, ...]) -> np.ndarray:
+    arr = _as_matrix(value, name, rows, cols)
+    if arr.ndim == 2:
+        return arr[None]
+    if arr.shape[0] not in lengths:
+        raise ValueError(f"{name} must have shape ({rows}, {cols}) or time first ({' or '.join(map(str, lengths))}, "
+                         f"..., {rows}, {cols}), got shape {arr.shape}")
+    return arr
+
+
+def pcrlb(P0, F, Q, H, R, steps: int | None = None, *, average_runs: bool = False) -> PCRLB:
+    r"""Posterior Cramér–Rao lower bound for additive-Gaussian models (Tichavský, Muravchik & Nehorai 1998).
+
+    For :math:`x_{k+1} = F_k x_k + w_k`, :math:`w_k \sim N(0, Q)` (``F`` the transition matrix or
+    the Jacobian along a deterministic truth) and :math:`z_k = h(x_k) + v_k`, the Fisher
+    information obeys the Riccati (information-form) recursion
+
+    .. math::
+
+        J_0 = P_0^{-1} + E[H_0^\top R^{-1} H_0], \qquad
+        J_{k+1} = (Q + F_k J_k^{-1} F_k^\top)^{-1} + E[H_{k+1}^\top R^{-1} H_{k+1}],
+
+    and any unbiased estimator has :math:`E[(\hat x_k - x_k)(\hat x_k - x_k)^\top] \ge J_k^{-1}`.
+    Only :math:`Q + F J^{-1} F^\top` is inverted, so a singular ``Q`` (e.g. the rank-1 discrete
+    white-noise acceleration) is fine, where the general form with :math:`Q^{-1}` fails. For a
+    linear-Gaussian model the bound is the Kalman filter's covariance. The time convention is
+    :func:`kftrack.kalman.kalman_filter`'s: ``P0`` is the prior of step 0, measured at step 0.
+
+    Parameters
+    ----------
+    P0 : (n, n) or (..., n, n) prior covariance, positive definite.
+    F : (n, n) constant, or time first ``(T-1 or T, ..., n, n)`` (``F[k]`` maps step ``k`` to ``k+1``).
+    Q : (n, n) or (..., n, n) process noise (may be singular).
+    H : (m, n) constant, or time first ``(T, ..., m, n)``: the measurement Jacobians at the truth.
+    R : (m, m) or (..., m, m) measurement noise, positive definite.
+    steps : number of steps ``T``; needed when neither ``F`` nor ``H`` is a sequence.
+    average_runs : if True, ``H`` is ``(T, N, m, n)``, the Jacobians at ``N`` random truths,
+        and :math:`E[H^\top R^{-1} H]` is their average (a Monte Carlo expectation).
+
+    Returns
+    -------
+    PCRLB
+        ``(P_prior, P, J)``, each ``(T, ..., n, n)``.
+    """
+    P0 = check_covariance(P0, "P0", positive_definite=True)
+    n = P0.shape[-1]
+    Q = check_covariance(Q, "Q", n)
+    R = check_covariance(R, "R", positive_definite=True)
+    m = R.shape[-1]
+    Harr = np.asarray(H, dtype=float)
+    Farr = np.asarray(F, dtype=float)
+    if steps is None:
+        if Harr.ndim > 2:
+            steps = Harr.shape[0]
+        elif Farr.ndim > 2:
+            steps = Farr.shape[0] + 1
+        else:
+            raise ValueError("steps must be given when F and H are both constant matrices")
+    if int(steps) != steps or steps < 1:
+        raise ValueError(f"steps must be a positive integer, got {steps!r}")
+    T = int(steps)
+    Fs = _sequence(F, "F", T, n, n, (T - 1, T))
+    Hs = _sequence(H, "H", T, m, n, (T,))
+    if average_runs and Hs.ndim != 4:
+        raise ValueError(f"with average_runs=True, H must have shape (T, N, {m}, {n}), got shape {Harr.shape}")
+    HtRinvH = np.swapaxes(Hs, -1, -2) @ np.linalg.solve(R, Hs)
+    if average_runs:
+        HtRinvH = HtRinvH.mean(axis=1)
+    Bp = P0
+    out_Bp, out_B, out_J = [], [], []
+    for k in range(T):
+        Jk = np.linalg.inv(Bp) + HtRinvH[min(k, len(HtRinvH) - 1)]
+        Jk = 0.5 * (Jk + np.swapaxes(Jk, -1, -2))
+        Bk = np.linalg.inv(Jk)
+        Bk = 0.5 * (Bk + np.swapaxes(Bk, -1, -2))
+        out_Bp.append(Bp)
+        out_B.append(Bk)
+        out_J.append(Jk)
+        Fk = Fs[min(k, len(Fs) - 1)]
+        Bp = Fk @ Bk @ np.swapaxes(Fk, -1, -2) + Q
+        Bp = 0.5 * (Bp + np.swapaxes(Bp, -1, -2))
+    shape = np.broadcast_shapes(*(a.shape for a in out_B))
+    return PCRLB(*(np.stack([np.broadcast_to(a, shape) for a in lst]) for lst in (out_Bp, out_B, out_J)))

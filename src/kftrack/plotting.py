@@ -12,7 +12,7 @@ from scipy import stats
 
 from ._validate import as_vector, check_covariance
 
-__all__ = ["use_book_style", "ellipse_points", "covariance_ellipse", "plot_track", "plot_band"]
+__all__ = ["use_book_style", "ellipse_points", "covariance_ellipse", "plot_track", "plot_band", "plot_chi2_band"]
 
 
 def use_book_style() -> None:
@@ -87,4 +87,14 @@ def plot_band(ax, t, mean, std, nsigma: float = 1.96, label: str | None = None, 
     t, mean, std = (np.asarray(a, dtype=float) for a in (t, mean, std))
     (line,) = ax.plot(t, mean, label=label, **kwargs)
     ax.fill_between(t, mean - nsigma * std, mean + nsigma * std, color=line.get_color(), alpha=0.2, lw=0)
+    return line
+
+
+def plot_chi2_band(ax, t, mean, bounds, label: str | None = None, **kwargs):
+    """A Monte Carlo average of NEES or NIS over time, ``mean(t)``, with its chi-square
+    acceptance interval ``bounds = (lower, upper)`` shaded (e.g. from
+    :func:`kftrack.metrics.consistency`); returns the line."""
+    t, mean = np.asarray(t, dtype=float), np.asarray(mean, dtype=float)
+    (line,) = ax.plot(t, mean, label=label, **kwargs)
+    ax.axhspan(bounds[0], bounds[1], color="0.5", alpha=0.2, lw=0)
     return line

@@ -1,0 +1,174 @@
+"""Tests of kftrack.ukf: sigma points against filterpy (test-only oracle), the unscented
+transform exact for affine maps (hypothesis), the UKF on a linear model equals the Kalman
+filter to round-off, circular means and wrapping across +-pi, bad input."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from filterpy.kalman import JulierSigmaPoints as FpJulier
+from filterpy.kalman import MerweScaledSigmaPoints as FpMerwe
+from filterpy.kalman import unscented_transform as fp_ut
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from kftrack import ekf, kalman, ukf
+from kftrack.kalman import _mv
+from kftrack.sensors.radar import RangeBearing
+
+EPS = np.finfo(float).eps
+
+
+def random_spd(rng, n, scale=1.0):
+    A = rng.normal(size=(n, n))
+    return scale * (A @ A.T + n * np.eye(n))
+
+
+@pytest.mark.parametrize("alpha,beta,kappa", [(1.0, 2.0, 0.0), (0.5, 2.0, 1.0), (1e-3, 2.0, 0.0), (0.8, 0.0, -1.0)])
+def test_merwe_points_match_filterpy(alpha, beta, kappa):
+    rng = np.random.default_rng(0)
+    n = 4
+    x, P = rng.normal(size=n), random_spd(rng, n)
+    ours = ukf.MerweScaledSigmaPoints(alpha, beta, kappa)(x, P)
+    fp = FpMerwe(n, alpha=alpha, beta=beta, kappa=kappa)
+    assert np.allclose(ours.X, fp.sigma_points(x, P), rtol=1e-13, atol=1e-13)
+    assert np.allclose(ours.Wm, fp.Wm, rtol=1e-13) and np.allclose(ours.Wc, fp.Wc, rtol=1e-13)
+
+
+@pytest.mark.parametrize("kappa", [0.0, 1.0, -1.0])
+def test_julier_points_match_filterpy(kappa):
+    rng = np.random.default_rng(1)
+    n = 3
+    x, P = rng.normal(size=n), random_spd(rng, n)
+    ours = ukf.JulierSigmaPoints(kappa)(x, P)
+    fp = FpJulier(n, kappa=kappa)
+    assert np.allclose(ours.X, fp.sigma_points(x, P), rtol=1e-13, atol=1e-13)
+    assert np.allclose(ours.Wm, fp.Wm, rtol=1e-13) and np.allclose(ours.Wc, fp.Wc, rtol=1e-13)
+
+
+def test_sigma_points_reproduce_mean_and_covariance_and_broadcast():
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(5, 3))
+    P = np.stack([random_spd(rng, 3) for _ in range(5)])
+    for pts in (ukf.MerweScaledSigmaPoints(0.7, 2.0, 0.5), ukf.JulierSigmaPoints(1.0)):
+        sp = pts(x, P)
+        assert sp.X.shape == (5, 7, 3)
+        assert np.isclose(sp.Wm.sum(), 1.0, rtol=0, atol=10 * EPS)
+        m, C = ukf.weighted_moments(sp.X, sp.Wm, sp.Wm)  # the mean weights recover P exactly
+        assert np.allclose(m, x, atol=1e-13)
+        assert np.allclose(C, P, rtol=1e-12)
+
+
+def test_unscented_transform_matches_filterpy_on_polar_to_cartesian():
+    x, P = np.array([1.0, 0.3]), np.diag([0.02**2, 0.35**2])
+    pol = lambda s: np.stack([s[..., 0] * np.cos(s[..., 1]), s[..., 0] * np.sin(s[..., 1])], axis=-1)
+    pts = ukf.MerweScaledSigmaPoints(0.9, 2.0, 0.0)
+    ours = ukf.unscented_transform(pol, x, P, pts)
+    fp = FpMerwe(2, alpha=0.9, beta=2.0, kappa=0.0)
+    m, C = fp_ut(pol(fp.sigma_points(x, P)), fp.Wm, fp.Wc)
+    assert np.allclose(ours.mean, m, rtol=1e-13) and np.allclose(ours.cov, C, rtol=1e-12)
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 5), d=st.integers(1, 4), alpha=st.floats(0.2, 1.0),
+       kappa=st.floats(0.0, 3.0))
+def test_unscented_transform_is_exact_for_affine_maps(seed, n, d, alpha, kappa):
+    rng = np.random.default_rng(seed)
+    A, b = rng.normal(size=(d, n)), rng.normal(size=d)
+    x, P = rng.normal(size=n), random_spd(rng, n)
+    t = ukf.unscented_transform(lambda v: v @ A.T + b, x, P, ukf.MerweScaledSigmaPoints(alpha, 2.0, kappa))
+    scale = np.max(np.abs(A @ P @ A.T)) / alpha**2
+    assert np.allclose(t.mean, A @ x + b, rtol=0, atol=1e3 * EPS * (1 + np.max(np.abs(A @ x + b))) / alpha**2)
+    assert np.allclose(t.cov, A @ P @ A.T, rtol=0, atol=1e3 * EPS * scale)
+    assert np.allclose(t.cross, P @ A.T, rtol=0, atol=1e3 * EPS * scale)
+    assert np.allclose(t.cov, t.cov.T, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("points", [ukf.MerweScaledSigmaPoints(), ukf.JulierSigmaPoints(1.0),
+                                    ukf.MerweScaledSigmaPoints(0.5, 2.0, 1.0)])
+def test_ukf_on_linear_model_equals_kalman_filter_to_round_off(points):
+    rng = np.random.default_rng(7)
+    n, m, T, N = 4, 2, 30, 5
+    F = np.eye(n) + 0.2 * rng.normal(size=(n, n))
+    Q, H, R = random_spd(rng, n, 0.1), rng.normal(size=(m, n)), random_spd(rng, m)
+    x0, P0 = rng.normal(size=n), random_spd(rng, n)
+    f, h = (lambda x: _mv(F, x)), (lambda x: _mv(H, x))
+    _, zs = ekf.simulate_additive_gaussian(f, h, x0, P0, Q, R, T, rng, runs=N)
+    zs[5, 2] = np.nan
+    kf = kalman.kalman_filter(zs, x0, P0, F, Q, H, R)
+    uk = ukf.unscented_kalman_filter(zs, x0, P0, f, Q, h, R, points)
+    for name, a, b in zip(kf._fields, kf, uk):
+        scale = np.nanmax(np.abs(a)) + 1.0
+        assert np.allclose(a, b, rtol=0, atol=1e4 * EPS * scale, equal_nan=True), name
+    assert np.array_equal(np.isnan(kf.nis), np.isnan(uk.nis))
+
+
+def test_circular_mean_across_pi():
+    Y = np.array([[np.pi - 0.1], [-np.pi + 0.1], [np.pi - 0.05], [-np.pi + 0.05], [np.pi]])
+    W = np.full(5, 0.2)
+    m, C = ukf.weighted_moments(Y, W, W, angle_components=[0])
+    assert np.isclose(abs(m[0]), np.pi, atol=1e-14)
+    assert np.isclose(C[0, 0], (2 * 0.1**2 + 2 * 0.05**2) / 5, rtol=1e-9)
+    m_naive, _ = ukf.weighted_moments(Y, W, W)
+    assert abs(m_naive[0]) < 1.0  # what goes wrong without it
+
+
+def _rotate(x, phi):
+    c, s = np.cos(phi), np.sin(phi)
+    Rm = np.array([[c, -s], [s, c]])
+    out = x.copy()
+    out[..., [0, 2]] = x[..., [0, 2]] @ Rm.T
+    out[..., [1, 3]] = x[..., [1, 3]] @ Rm.T
+    return out
+
+
+def _ekf_update(x, P, z, radar, angles):
+    return ekf.ekf_update(x, P, z, radar.h, radar.jacobian, radar.R, angles)
+
+
+def _ukf_update(x, P, z, radar, angles):
+    return ukf.ukf_update(x, P, z, radar.h, radar.R, angle_components=angles)
+
+
+@pytest.mark.parametrize("update", [_ekf_update, _ukf_update], ids=["ekf", "ukf"])
+def test_update_near_bearing_pi_matches_rotated_geometry(update):
+    """A target just across the +-pi cut gives the same update as the geometry rotated by pi
+    (where nothing wraps); forgetting the angle component gives an innovation of ~2 pi."""
+    radar = RangeBearing(sigmas=(5.0, 0.01))
+    x = np.array([-1000.0, 0.0, 3.0, 0.0])  # bearing just below pi
+    P = np.diag([400.0, 1.0, 900.0, 1.0])  # the UKF's bearing sigma points straddle the cut
+    z = np.array([1000.0, -np.pi + 0.002])  # measured just above -pi
+    up = update(x, P, z, radar, radar.angle_components)
+    assert abs(up.y[1]) < 0.01
+    zr = np.array([z[0], ekf.wrap_angle(z[1] + np.pi)])
+    ur = update(_rotate(x, np.pi), P, zr, radar, radar.angle_components)
+    assert np.allclose(_rotate(ur.x, -np.pi), up.x, atol=1e-8)
+    assert np.allclose(ur.S, up.S, rtol=1e-9) and np.isclose(ur.nis, up.nis, rtol=1e-6)
+    assert abs(update(x, P, z, radar, ()).y[1]) > 1.0
+
+
+def test_state_angle_is_wrapped_after_update():
+    # state [heading]; measure the heading directly; prior just below pi, measurement just above -pi
+    h = lambda x: x
+    up = ukf.ukf_update([np.pi - 0.01], [[0.01]], [-np.pi + 0.01], h, [[0.01]], angle_components=[0],
+                        state_angles=[0])
+    assert -np.pi < up.x[0] <= np.pi and abs(abs(up.x[0]) - np.pi) < 0.011
+
+
+def test_bad_input_names_the_argument():
+    x, P = np.zeros(2), np.eye(2)
+    with pytest.raises(TypeError, match="points"):
+        ukf.ukf_predict(x, P, lambda v: v, np.eye(2), points="merwe")
+    with pytest.raises(ValueError, match="P must be positive definite"):
+        ukf.MerweScaledSigmaPoints()(x, np.diag([1.0, 0.0]))
+    with pytest.raises(ValueError, match="alpha"):
+        ukf.MerweScaledSigmaPoints(alpha=0.0)
+    with pytest.raises(ValueError, match="kappa"):
+        ukf.JulierSigmaPoints(kappa=-2.0)(x, P)
+    with pytest.raises(ValueError, match="state_angles"):
+        ukf.ukf_predict(x, P, lambda v: v, np.eye(2), state_angles=[2])
+    with pytest.raises(ValueError, match="fn"):
+        ukf.unscented_transform(lambda v: v[..., 0], x, P)
+    with pytest.raises(ValueError, match="Wm"):
+        ukf.weighted_moments(np.zeros((5, 2)), np.ones(4), np.ones(5))
+    with pytest.raises(ValueError, match="R"):
+        ukf.ukf_update(x, P, x, lambda v: v, -np.eye(2))
