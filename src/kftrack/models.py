@@ -1,5 +1,6 @@
-r"""Motion models for tracking: constant velocity, constant acceleration, Singer, and the
-coordinated turn with known or estimated turn rate.
+r"""Motion models for tracking: constant velocity, constant acceleration, Singer, the
+coordinated turn with known or estimated turn rate, and 3-D turns (:class:`Turn3D`,
+:class:`Turn3DAngles`, chapter 6).
 
 Every model gives the transition ``F(dt)``, the process noise ``Q(dt)``, the transition
 function ``f(x, dt)``, its Jacobian ``jacobian(x, dt)`` and the position-measurement matrix
@@ -37,6 +38,7 @@ __all__ = [
     "ConstantVelocity", "ConstantAcceleration", "Singer", "KnownTurn", "CoordinatedTurn",
     "CoordinatedTurnPolar", "van_loan", "singer_acceleration_variance", "turn_state_to_polar",
     "turn_state_from_polar", "TURN_SERIES_THRESHOLD", "SINGER_SERIES_THRESHOLD",
+    "Turn3D", "turn3d_A", "Turn3DAngles", "turn3d_angles_A", "ANGLES_STATE",
 ]
 
 #: |omega*dt| below which the turn models use their Taylor series (order 20 in omega).
@@ -570,3 +572,223 @@ def van_loan(A, G, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
     F = E[n:, n:].T
     Q = F @ E[:n, n:]
     return F, 0.5 * (Q + Q.T)
+
+
+# --------------------------------------------------------------------------------------------
+# 3-D turns (chapter 6)
+# --------------------------------------------------------------------------------------------
+#: Symbols of seed 001's 8-state model, interleaved, the two rates last.
+ANGLES_STATE = sp.Matrix(sp.symbols("x v_x y v_y h v_h omega_chi omega_gamma", real=True))
+
+
+def turn3d_angles_A(form: str = "paper") -> sp.Matrix:
+    r"""Continuous system matrix :math:`A(\mathbf x)` of seed 001's 3-D turn (Agner Júnior et al.
+    2019, eq. 24, rebuilt), state ``[x, vx, y, vy, h, vh, omega_chi, omega_gamma]``: constant
+    heading rate :math:`\omega_\chi` and flight-path-angle rate :math:`\omega_\gamma`, with
+    :math:`\cos\chi = v_x/\rho`, :math:`\sin\chi = v_y/\rho`, :math:`\rho = \sqrt{v_x^2+v_y^2}`.
+
+    ``form="paper"``: the vertical row :math:`\dot v_h = (\omega_\gamma/\sin\chi) v_y` (eq. 17),
+    singular for flight along :math:`\pm x`; ``"nonsingular"``:
+    :math:`\dot v_h = \omega_\gamma(\cos\chi\,v_x + \sin\chi\,v_y) = \omega_\gamma\rho`, the same on
+    the exact motion and regular everywhere except vertical flight.
+    """
+    if form not in ("paper", "nonsingular"):
+        raise ValueError(f"form must be 'paper' or 'nonsingular', got {form!r}")
+    x, vx, y, vy, h, vh, wc, wg = ANGLES_STATE
+    rho = sp.sqrt(vx**2 + vy**2)
+    c, s = vx / rho, vy / rho
+    A = sp.zeros(8, 8)
+    A[0, 1] = A[2, 3] = A[4, 5] = 1
+    A[1, 3], A[1, 5] = -wc, -c * wg
+    A[3, 1], A[3, 5] = wc, -s * wg
+    if form == "paper":
+        A[5, 3] = wg / s
+    else:
+        A[5, 1], A[5, 3] = c * wg, s * wg
+    return A
+
+
+@lru_cache(maxsize=None)
+def _angles_turn(form: str) -> dict:
+    X = ANGLES_STATE
+    A = turn3d_angles_A(form)
+    F = sym.taylor_transition(A, 2)
+    f = F * X
+    args = [*X, sym.T]
+    out = {"F": sym.GeneratedFunction(args, F), "f": sym.GeneratedFunction(args, f),
+           "J": sym.GeneratedFunction(args, f.jacobian(X))}
+    Bc = sym.white_noise_gain(8, [1, 3, 5, 6, 7])
+    out["Gamma"] = sym.GeneratedFunction(args, sp.expand((sp.eye(8) * sym.T + sym.T**2 / 2 * A) * Bc))
+    if form == "nonsingular":
+        fc = A * X  # the continuous vector field
+        fc2 = fc.jacobian(X) * fc
+        out["f_taylor_exact"] = sym.GeneratedFunction(args, X + sym.T * fc + sym.T**2 / 2 * fc2)
+    return out
+
+
+def _int_cos_sin(phi, c, dt):
+    r""":math:`\int_0^T\cos(\phi + c\tau)d\tau` and the same with sin, stable as :math:`c \to 0`."""
+    x = c * dt
+    s0 = np.sinc(x / np.pi)
+    xs1 = x * 0.5 * np.sinc(x / (2 * np.pi)) ** 2  # (1 - cos x)/x
+    return dt * (np.cos(phi) * s0 - np.sin(phi) * xs1), dt * (np.sin(phi) * s0 + np.cos(phi) * xs1)
+
+
+@dataclass(frozen=True)
+class Turn3DAngles:
+    r"""Seed 001's 3-D turn (Agner Júnior et al. 2019, §3): constant speed, heading rate
+    :math:`\omega_\chi` and flight-path-angle rate :math:`\omega_\gamma`; the heading
+    :math:`\chi = \operatorname{atan2}(v_y, v_x)` and path angle :math:`\gamma` are read from the
+    velocity. State ``[x, vx, y, vy, h, vh, omega_chi, omega_gamma]`` (m, m/s, rad/s).
+
+    * :meth:`F`: the paper's eq. (30), :math:`F = I + TA + \tfrac{T^2}{2}A^2` with :math:`\chi`
+      and the rates frozen (what the paper calls its Jacobian: the **partial** Jacobian);
+    * :meth:`f`: the second-order Taylor transition :math:`F(\mathbf x)\mathbf x` (eq. 28);
+    * :meth:`jacobian`: the **full** Jacobian of :meth:`f`, with the :math:`\partial/\partial\omega`
+      columns and the :math:`\partial\chi/\partial v` terms;
+    * :meth:`f_taylor_exact`: the true second-order Taylor step
+      :math:`\mathbf x + T\mathbf g + \tfrac{T^2}{2}J_g\mathbf g` of the vector field
+      :math:`\mathbf g = A\mathbf x` (the paper's :math:`\ddot X = A\dot X` drops :math:`\dot A`);
+    * :meth:`f_exact`: the exact motion, :math:`\chi = \chi_0 + \omega_\chi t`,
+      :math:`\gamma = \gamma_0 + \omega_\gamma t`, positions integrated in closed form.
+
+    Parameters
+    ----------
+    form : ``"paper"`` (eq. 17, :math:`1/\sin\chi`, singular along :math:`\pm x`) or
+        ``"nonsingular"`` (see :func:`turn3d_angles_A`).
+    sigma2, sigma2_omega : the paper's direct-discrete noise (§3.4): variances of the white
+        acceleration per axis (**m²/s⁴**, :math:`\sigma_q^2`) and of the rate noise
+        (**rad²/s⁴**), :math:`Q = \Gamma\,\mathrm{diag}(\sigma^2,\sigma^2,\sigma^2,
+        \sigma_\omega^2,\sigma_\omega^2)\Gamma^\top`, :math:`\Gamma = (IT + \tfrac{T^2}{2}A)B_c`.
+    """
+
+    form: str = "nonsingular"
+    sigma2: float = 0.0
+    sigma2_omega: float = 0.0
+    n: int = field(default=8, init=False)
+
+    def __post_init__(self):
+        if self.form not in ("paper", "nonsingular"):
+            raise ValueError(f"form must be 'paper' or 'nonsingular', got {self.form!r}")
+        object.__setattr__(self, "sigma2", _nonneg(self.sigma2, "sigma2", 1)[0])
+        object.__setattr__(self, "sigma2_omega", _nonneg(self.sigma2_omega, "sigma2_omega", 1)[0])
+
+    @property
+    def H(self) -> np.ndarray:
+        """Position-measurement matrix, ``(3, 8)``."""
+        return _position_selector(8, (0, 2, 4))
+
+    def _call(self, key: str, x, dt, form: str | None = None) -> np.ndarray:
+        x = as_vector(x, "x", 8)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return _angles_turn(form or self.form)[key](*np.moveaxis(x, -1, 0), _dt(dt))
+
+    def F(self, x, dt) -> np.ndarray:
+        """The paper's transition / partial Jacobian (eq. 30) at ``x``, ``(..., 8, 8)``."""
+        return self._call("F", x, dt)
+
+    def f(self, x, dt) -> np.ndarray:
+        """Second-order Taylor transition ``F(x) @ x`` (eq. 28), ``(..., 8)``."""
+        return self._call("f", x, dt)[..., 0]
+
+    def jacobian(self, x, dt) -> np.ndarray:
+        """Full Jacobian of :meth:`f`, ``(..., 8, 8)``."""
+        return self._call("J", x, dt)
+
+    def f_taylor_exact(self, x, dt) -> np.ndarray:
+        """Exact second-order Taylor step of the (non-singular) continuous model, ``(..., 8)``."""
+        return self._call("f_taylor_exact", x, dt, "nonsingular")[..., 0]
+
+    def Q(self, x, dt) -> np.ndarray:
+        """The paper's direct-discrete process noise at ``x`` (eq. 30's Γ, 8×5), ``(..., 8, 8)``."""
+        d = _dt(dt, nonnegative=True, what=" for the process noise Q(dt)")
+        G = self._call("Gamma", x, d)
+        S = np.diag([self.sigma2] * 3 + [self.sigma2_omega] * 2)
+        return G @ S @ np.swapaxes(G, -1, -2)
+
+    @staticmethod
+    def f_exact(x, dt) -> np.ndarray:
+        r"""Exact transition, ``(..., 8)``: speed kept,
+        :math:`\mathbf v(t) = v[\cos\chi\cos\gamma, \sin\chi\cos\gamma, \sin\gamma]` with
+        :math:`\chi, \gamma` linear in time; the position integrals use
+        :math:`\cos\chi\cos\gamma = \tfrac12[\cos(\chi+\gamma) + \cos(\chi-\gamma)]`. No singularity
+        (also exact at zero rates)."""
+        x = as_vector(x, "x", 8)
+        d = _dt(dt)
+        vx, vy, vh, wc, wg = x[..., 1], x[..., 3], x[..., 5], x[..., 6], x[..., 7]
+        v = np.sqrt(vx**2 + vy**2 + vh**2)
+        chi, gam = np.arctan2(vy, vx), np.arctan2(vh, np.hypot(vx, vy))
+        cp, sp_ = _int_cos_sin(chi + gam, wc + wg, d)
+        cm, sm = _int_cos_sin(chi - gam, wc - wg, d)
+        _, sh = _int_cos_sin(gam, wg, d)
+        chi1, gam1 = chi + wc * d, gam + wg * d
+        out = np.stack([x[..., 0] + 0.5 * v * (cp + cm), v * np.cos(chi1) * np.cos(gam1),
+                        x[..., 2] + 0.5 * v * (sp_ + sm), v * np.sin(chi1) * np.cos(gam1),
+                        x[..., 4] + v * sh, v * np.sin(gam1),
+                        np.broadcast_to(wc, np.shape(chi1)), np.broadcast_to(wg, np.shape(chi1))], axis=-1)
+        return out
+
+
+def _turn_rate_scalar(omega) -> float:
+    arr = check_finite(as_float_array(omega, "omega"), "omega")
+    if arr.ndim != 0:
+        raise ValueError(f"omega must be a scalar turn rate (rad/s), got shape {arr.shape}")
+    return float(arr)
+
+
+@lru_cache(maxsize=None)
+def _turn3d() -> dict:
+    A = turn3d_A()
+    G = sym.white_noise_gain(3, [2])
+    args = [sym.T, sym.omega]
+    return {
+        "F": sym.GeneratedFunction(args, sym.transition_matrix(A), _TURN_SERIES),
+        "Qc": sym.GeneratedFunction(args, sym.continuous_white_noise(A, G, sp.Matrix([[1]])), _TURN_SERIES),
+    }
+
+
+def turn3d_A() -> sp.Matrix:
+    r"""Per-axis system matrix of the 3-D turn, state ``[p, v, a]``:
+    :math:`\dot a = -\omega^2 v` (Watson & Blair; Li & Jilkov 2003, §VI)."""
+    return sp.Matrix([[0, 1, 0], [0, 0, 1], [0, -sym.omega**2, 0]])
+
+
+@dataclass(frozen=True)
+class Turn3D(_LinearModel):
+    r"""3-D constant turn with the turn-rate vector perpendicular to the velocity
+    (Li & Jilkov 2003, §VI): per axis :math:`\dot a = -\omega^2 v + w`, the same
+    :math:`\omega` (rad/s) for every axis. State ``[x, vx, ax, y, vy, ay(, z, vz, az)]``.
+
+    Per axis (exact; series branch as :math:`\omega T \to 0`, where it tends to constant
+    acceleration):
+
+    .. math::
+
+        F = \begin{bmatrix}1 & \frac{\sin\omega T}{\omega} & \frac{1-\cos\omega T}{\omega^2}\\
+        0 & \cos\omega T & \frac{\sin\omega T}{\omega}\\ 0 & -\omega\sin\omega T & \cos\omega T\end{bmatrix}
+
+    and ``Q`` the exact continuous-white-jerk integral with spectral density ``q`` (**m²/s⁵**).
+    The motion :math:`\dot{\mathbf a} = -\omega^2\mathbf v` is a circle in a fixed plane: exact
+    for constant speed and curvature only when the torsion is zero (a planar turn, in any tilted
+    plane); on a helix it misses :math:`v^3\kappa\tau\,\mathbf b`
+    (:func:`kftrack.frenet.turn_model_residual`).
+    """
+
+    omega: float = 0.0
+    q: float | tuple = 0.0
+    ndim: int = 3
+    _k = 3
+
+    def __post_init__(self):
+        object.__setattr__(self, "ndim", _ndim(self.ndim, (2, 3)))
+        object.__setattr__(self, "omega", _turn_rate_scalar(self.omega))
+        object.__setattr__(self, "q", _nonneg(self.q, "q", self.ndim))
+
+    def F(self, dt) -> np.ndarray:
+        """Transition matrix, ``(..., n, n)``."""
+        return _block_diag([_turn3d()["F"](_dt(dt), self.omega)] * self.ndim)
+
+    def Q(self, dt) -> np.ndarray:
+        """Exact continuous-white-jerk process noise, ``(..., n, n)``."""
+        Qa = _turn3d()["Qc"](_dt(dt, nonnegative=True, what=" for the process noise Q(dt)"), self.omega)
+        return _block_diag([qi * Qa for qi in self.q])

@@ -24,6 +24,11 @@ Seed 003 (Costa 2023, *Monitoramento e predição de sistemas autônomos*, §2.2
 * :data:`COSTA2023_ROBOT`, :func:`robot_truth`, :func:`robot`: a robot in the plane on
   :math:`x_n = 15 + 5n`, :math:`y = 2^{x/30}` (our reconstruction of the study's path), with
   direct position fixes.
+
+Chapter 6 (curves in space): :class:`ManoeuvreScenario` tracks with manoeuvre labels, built
+with :func:`kftrack.frenet.simulate`: seed 000's drone scenarios (:func:`drone_scenario`),
+seed 001's zig-zag in a tilted plane (:func:`tilted_zigzag`), :func:`climbing_helix`,
+:func:`torsion_manoeuvre`.
 """
 from __future__ import annotations
 
@@ -38,6 +43,8 @@ from ._validate import as_float_array, check_finite
 __all__ = [
     "Scenario", "Printed", "printed", "CarRadarStudy", "RobotStudy", "COSTA2023_CAR",
     "COSTA2023_ROBOT", "car_radar", "robot_truth", "robot",
+    "ManoeuvreScenario", "DroneScenario", "MARTINS2018_SCENARIOS", "drone_scenario", "tilted_zigzag",
+    "climbing_helix", "torsion_manoeuvre",
 ]
 
 
@@ -362,3 +369,272 @@ def robot(rng: np.random.Generator, n_steps: int = 35, *, sigma: float = 3.0, dt
     truth = robot_truth(t)
     z = _noisy(rng, truth[:, [0, 3]], sigma, runs)
     return Scenario(t, _batch(truth, runs), z)
+
+
+# --------------------------------------------------------------------------------------------
+# curves in space (chapter 6): seed 000's drone scenarios, seed 001's tilted zig-zag, and more
+# --------------------------------------------------------------------------------------------
+from . import frenet as _fr  # noqa: E402  (models layer, below the worlds)
+
+
+class ManoeuvreScenario(NamedTuple):
+    """A 3-D trajectory with its manoeuvre labels, time first.
+
+    Attributes
+    ----------
+    t : (T,) sample times (s).
+    truth : (T, 6) true states ``[x, vx, y, vy, z, vz]`` (m, m/s).
+    z : (T, 3) position measurements (m), truth plus white Gaussian noise of std ``sigma``.
+    label : (T,) int, 0 on a straight segment, 1 while turning (non-zero curvature).
+    track : the full :class:`kftrack.frenet.FrenetTrack` (frame, acceleration, kappa, tau).
+    """
+
+    t: np.ndarray
+    truth: np.ndarray
+    z: np.ndarray
+    label: np.ndarray
+    track: "_fr.FrenetTrack"
+
+
+def _manoeuvre(rng: np.random.Generator, track, sigma: float) -> ManoeuvreScenario:
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    s = float(check_finite(as_float_array(sigma, "sigma"), "sigma"))
+    if s < 0:
+        raise ValueError(f"sigma must be >= 0 (m), got {sigma!r}")
+    truth = np.stack([track.r[:, 0], track.v[:, 0], track.r[:, 1], track.v[:, 1],
+                      track.r[:, 2], track.v[:, 2]], axis=-1)
+    z = track.r + s * rng.standard_normal(track.r.shape)
+    return ManoeuvreScenario(track.t, truth, z, track.turning.astype(int), track)
+
+
+@dataclass(frozen=True)
+class DroneScenario:
+    """One of study 000's filtering scenarios (Martins, Naruto & Danner 2018, tables 3–5).
+
+    Attributes
+    ----------
+    r0, v0 : initial position (m) and velocity (m/s) of the simulator (tables 3–5).
+    ds : arc-length step (m); the sampling interval is ``ds / |v0|`` (the study gives no T).
+    sigma : measurement noise std (m).
+    radii, lengths : segments as :func:`kftrack.frenet.segments_from_radii` takes them
+        (R = 0 straight, negative R a right turn). Scenario I is as printed; II and III are
+        **our reconstructions** (the study shows them only in figures), see ``assumption``.
+    assumption : what we had to choose.
+    """
+
+    r0: tuple
+    v0: tuple
+    ds: float
+    sigma: float
+    radii: tuple
+    lengths: tuple
+    assumption: str
+
+    @property
+    def dt(self) -> float:
+        """Implied sampling interval ``ds / |v0|`` (s)."""
+        return self.ds / float(np.linalg.norm(self.v0))
+
+    @property
+    def segments(self) -> list:
+        """The segments, :class:`kftrack.frenet.Segment`."""
+        return _fr.segments_from_radii(self.radii, self.lengths)
+
+
+#: Study 000's three filtering scenarios, keyed "I", "II", "III".
+MARTINS2018_SCENARIOS = MappingProxyType({
+    "I": DroneScenario((1.0, 1.0, 0.0), (1.0, 0.8, 0.0), 0.5, 0.5, (0.0,), (100.0,),
+                       "as printed: a 100 m straight line, 200 steps of ds = 0.5 m"),
+    "II": DroneScenario((44.0, 71.7, 0.0), (-1.0, 2.0, 0.0), 1.0, 2.0,
+                        (0.0, 30.0, 0.0, -30.0, 0.0), (50.0, 15 * np.pi, 50.0, 15 * np.pi, 50.0),
+                        "reconstructed: 50 m straight (the KF error rises near sample 50), a 90° left "
+                        "turn of radius 30 m, 50 m straight, a 90° right turn, 50 m straight"),
+    "III": DroneScenario((0.0, 0.7, 10.0), (2.0, 1.0, 0.0), 6.0, 5.0,
+                         (0.0, -30.0, 0.0, 30.0, 0.0, -30.0, 0.0),
+                         (360.0, 15 * np.pi, 240.0, 15 * np.pi, 180.0, 15 * np.pi, 240.0),
+                         "reconstructed: 360 m straight (the IMM starts switching near sample 60), "
+                         "then three 90° city-block turns of radius 30 m (right, left, right) "
+                         "between straight streets, at a constant 10 m altitude"),
+})
+
+
+def drone_scenario(rng: np.random.Generator, name: str, *, sigma: float | None = None) -> ManoeuvreScenario:
+    """Study 000's scenario ``"I"``, ``"II"`` or ``"III"`` (:data:`MARTINS2018_SCENARIOS`),
+    simulated exactly (:func:`kftrack.frenet.simulate`), with position noise of the study's
+    ``sigma`` (0.5, 2, 5 m) unless given."""
+    if name not in MARTINS2018_SCENARIOS:
+        raise ValueError(f"name must be one of {tuple(MARTINS2018_SCENARIOS)}, got {name!r}")
+    sc = MARTINS2018_SCENARIOS[name]
+    track = _fr.simulate(sc.segments, sc.dt, sc.r0, sc.v0)
+    return _manoeuvre(rng, track, sc.sigma if sigma is None else sigma)
+
+
+def _tilted_up(v0: np.ndarray, tilt: float) -> np.ndarray:
+    """Binormal of a plane through the level velocity ``v0``, tilted by ``tilt`` (rad) so that a
+    left turn climbs."""
+    t0 = v0 / np.linalg.norm(v0)
+    left = np.cross([0.0, 0.0, 1.0], t0)
+    left /= np.linalg.norm(left)
+    return np.cos(tilt) * np.array([0.0, 0.0, 1.0]) - np.sin(tilt) * left
+
+
+def tilted_zigzag(rng: np.random.Generator, *, sigma: float = 75.0, tilt_deg: float = 30.0,
+                  speed: float = 250.0, dt: float = 4.0, omega: float = 0.05,
+                  turn_deg: float = 45.0, leg: float = 60.0) -> ManoeuvreScenario:
+    r"""Seed 001's zig-zag (Agner Júnior et al. 2019, §4): seven segments, straight–turn–...–
+    straight, in a plane tilted ``tilt_deg`` from horizontal, at ``speed`` m/s sampled every
+    ``dt`` s. The paper gives none of the geometry; **our choices**: the truth starts at the
+    paper's initial estimate (−30 km, −30 km, 600 m; level, heading 38.31° from +x), straight
+    legs of ``leg`` seconds, turns at ``omega`` rad/s of +``turn_deg``, −2·``turn_deg``,
+    +``turn_deg`` (so the first turn climbs and the last leg is level again), and the tilt
+    axis along the initial velocity. Every turn is planar (zero torsion). Measurements are
+    Cartesian positions with std ``sigma`` (m), not the paper's polar radar."""
+    v0 = speed * np.array([np.cos(np.arctan2(154.98, 196.16)), np.sin(np.arctan2(154.98, 196.16)), 0.0])
+    kappa = omega / speed
+    arc = np.deg2rad(turn_deg) / kappa
+    L = leg * speed
+    segs = [_fr.Segment(L), _fr.Segment(arc, kappa), _fr.Segment(L), _fr.Segment(2 * arc, -kappa),
+            _fr.Segment(L), _fr.Segment(arc, kappa), _fr.Segment(L)]
+    track = _fr.simulate(segs, dt, (-30000.0, -30000.0, 600.0), v0, up=_tilted_up(v0, np.deg2rad(tilt_deg)))
+    return _manoeuvre(rng, track, sigma)
+
+
+def climbing_helix(rng: np.random.Generator, *, sigma: float = 10.0, speed: float = 100.0,
+                   rate: float = 0.05, climb_deg: float = 10.0, dt: float = 1.0,
+                   lead_in: float = 20.0, duration: float = 180.0) -> ManoeuvreScenario:
+    r"""A straight climb of ``lead_in`` s, then a climbing turn at ``rate`` rad/s about the
+    vertical (counter-clockwise from above) for ``duration`` s: a circular helix of radius
+    :math:`R = v\cos\gamma/\Omega`, curvature :math:`\cos^2\gamma/R` and torsion
+    :math:`\sin\gamma\cos\gamma/R` (:math:`\gamma` = ``climb_deg``)."""
+    g = np.deg2rad(climb_deg)
+    R = speed * np.cos(g) / rate
+    segs = [_fr.Segment(speed * lead_in), _fr.Segment(speed * duration, np.cos(g) ** 2 / R, np.sin(g) * np.cos(g) / R)]
+    v0 = speed * np.array([np.cos(g), 0.0, np.sin(g)])
+    return _manoeuvre(rng, _fr.simulate(segs, dt, (0.0, 0.0, 500.0), v0), sigma)
+
+
+def torsion_manoeuvre(rng: np.random.Generator, *, sigma: float = 10.0, dt: float = 1.0) -> ManoeuvreScenario:
+    """A 3-D manoeuvre with torsion and speed changes, from 60 m/s: straight (600 m);
+    accelerating climbing turn (κ = 1/500, τ = 1/800 per m, +1 m/s²; 800 m); decelerating
+    straight (−1 m/s², 400 m); descending right turn with negative torsion (κ = −1/400,
+    τ = −1/600; 900 m); straight (500 m)."""
+    segs = [_fr.Segment(600.0), _fr.Segment(800.0, 1 / 500, 1 / 800, 1.0), _fr.Segment(400.0, accel=-1.0),
+            _fr.Segment(900.0, -1 / 400, -1 / 600), _fr.Segment(500.0)]
+    return _manoeuvre(rng, _fr.simulate(segs, dt, (0.0, 0.0, 300.0), (60.0, 0.0, 0.0)), sigma)
+
+
+# --------------------------------------------------------------------------------------------
+# Chapter 15 (seed 003's missing simulation chapter): a floor plan, robot paths, landmark maps.
+# Our reconstruction: the study names no environment, path or noise level.
+# --------------------------------------------------------------------------------------------
+from . import slam as _slam  # noqa: E402
+from .ekf import wrap_angle as _wrap_angle  # noqa: E402
+
+__all__ += ["floor_plan", "drive", "apartment_loop", "ring_landmarks", "SlamScenario", "slam_loop"]
+
+
+def floor_plan() -> np.ndarray:
+    """A 12 m × 8 m apartment seen from above (seed 003 §2.3.3): outer walls, a partition
+    (4–8 m at y = 5.5 m), a square pillar (9–9.6 m, 3–3.6 m) and a counter (1–3 m at y = 6.5 m).
+    Returns walls ``(W, 2, 2)`` in metres."""
+    segs = [((0, 0), (12, 0)), ((12, 0), (12, 8)), ((12, 8), (0, 8)), ((0, 8), (0, 0)),
+            ((4, 5.5), (8, 5.5)),
+            ((9, 3), (9.6, 3)), ((9.6, 3), (9.6, 3.6)), ((9.6, 3.6), (9, 3.6)), ((9, 3.6), (9, 3)),
+            ((1, 6.5), (3, 6.5))]
+    return np.array(segs, dtype=float)
+
+
+def drive(segments, dt: float, start) -> tuple[np.ndarray, np.ndarray]:
+    r"""Drive the noise-free unicycle (:class:`kftrack.slam.Unicycle`) through ``segments`` of
+    ``(duration_s, v, omega)``; ``start`` is the pose ``(x, y, heading)``.
+
+    Returns ``(poses (T, 3), controls (T, 2))`` with ``poses[k + 1] = f(poses[k], controls[k])``;
+    the last control row repeats the one before (unused by a filter)."""
+    dt = _positive(dt, "dt")
+    u = []
+    for seg in segments:
+        duration, v, w = (float(s) for s in seg)
+        u += [(v, w)] * int(round(duration / dt))
+    if not u:
+        raise ValueError("segments must drive for at least one step")
+    u = np.array(u + [u[-1]])
+    model = _slam.Unicycle(0.0, 0.0)
+    poses = np.empty((len(u), 3))
+    poses[0] = check_finite(as_float_array(start, "start"), "start")
+    for k in range(len(u) - 1):
+        poses[k + 1] = model.f(poses[k], u[k], dt)
+    return poses, u
+
+
+def apartment_loop(dt: float = 0.5, speed: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """A rectangular loop through :func:`floor_plan`: from (2, 1.5) heading east, 8 m × 3 m,
+    turning 90° left in place (2 s per turn) at each corner. Returns ``(poses, controls)``."""
+    turn = (2.0, 0.0, np.pi / 4)
+    segs = [(8.0 / speed, speed, 0.0), turn, (3.0 / speed, speed, 0.0), turn,
+            (8.0 / speed, speed, 0.0), turn, (3.0 / speed, speed, 0.0), turn]
+    return drive(segs, dt, (2.0, 1.5, 0.0))
+
+
+def ring_landmarks(rng: np.random.Generator, count: int = 12, radius: float = 6.0,
+                   spread: float = 2.5) -> np.ndarray:
+    """``count`` point landmarks ``(count, 2)`` around a circle of ``radius``: evenly spaced in
+    angle with a uniform jitter of ±1/4 spacing, alternately inside and outside the circle by
+    ``spread`` ± 0.5 m."""
+    count = _count(count, "count")
+    radius, spread = _positive(radius, "radius"), _positive(spread, "spread")
+    ang = 2 * np.pi * (np.arange(count) + rng.uniform(-0.25, 0.25, count)) / count
+    rad = radius + spread * np.where(np.arange(count) % 2, 1.0, -1.0) + rng.uniform(-0.5, 0.5, count)
+    return np.stack([rad * np.cos(ang), rad * np.sin(ang)], -1)
+
+
+class SlamScenario(NamedTuple):
+    """A robot among point landmarks, time first.
+
+    Attributes
+    ----------
+    t : (T,) times (s).
+    truth : (T, 3) true poses ``[x, y, heading]``.
+    controls : (T, 2) true ``[v, omega]`` applied after each step.
+    odometry : (T, ..., 2) measured ``[v, omega]`` (white noise; runs on the middle axis).
+    landmarks : (L, 2) true landmark positions.
+    observations : list of T pairs ``(ids (M_k,), z (M_k, ..., 2))``: range and bearing of the
+        landmarks within ``max_range``; the visible set depends on the true path only, so it is
+        the same in every run.
+    """
+
+    t: np.ndarray
+    truth: np.ndarray
+    controls: np.ndarray
+    odometry: np.ndarray
+    landmarks: np.ndarray
+    observations: list
+
+
+def slam_loop(rng: np.random.Generator, landmarks, *, loops: float = 1.0, runs: int | None = None,
+              dt: float = 0.25, speed: float = 1.0, radius: float = 6.0, sigma_v: float = 0.05,
+              sigma_omega: float = np.deg2rad(3.0), sigma_range: float = 0.1,
+              sigma_bearing: float = np.deg2rad(2.0), max_range: float = 4.0) -> SlamScenario:
+    r"""The robot drives ``loops`` times counter-clockwise around a circle of ``radius`` (from
+    ``(radius, 0)`` heading north) at ``speed``; odometry and range–bearing observations of
+    ``landmarks`` closer than ``max_range`` carry white Gaussian noise of the given standard
+    deviations (m/s, rad/s, m, rad). ``runs=N`` draws N independent noise realisations on the
+    same true path."""
+    lm = check_finite(as_float_array(landmarks, "landmarks"), "landmarks")
+    if lm.ndim != 2 or lm.shape[1] != 2:
+        raise ValueError(f"landmarks must have shape (L, 2), got shape {lm.shape}")
+    loops, radius, speed = _positive(loops, "loops"), _positive(radius, "radius"), _positive(speed, "speed")
+    runs = _count(runs, "runs", allow_none=True)
+    duration = loops * 2 * np.pi * radius / speed
+    truth, u = drive([(duration, speed, speed / radius)], dt, (radius, 0.0, np.pi / 2))
+    size = (len(u),) + (() if runs is None else (runs,)) + (2,)
+    odo = u.reshape((len(u),) + (1,) * (runs is not None) + (2,)) + rng.standard_normal(size) * [sigma_v, sigma_omega]
+    obs = []
+    for k, pose in enumerate(truth):
+        z = _slam.observe(np.broadcast_to(pose, lm.shape[:-1] + (3,)), lm)
+        ids = np.flatnonzero(z[:, 0] < max_range)
+        zk = z[ids].reshape((len(ids),) + (1,) * (runs is not None) + (2,))
+        zk = zk + rng.standard_normal((len(ids),) + size[1:]) * [sigma_range, sigma_bearing]
+        zk[..., 1] = _wrap_angle(zk[..., 1])
+        obs.append((ids, zk))
+    return SlamScenario(dt * np.arange(len(u)), truth, u, odo, lm, obs)
