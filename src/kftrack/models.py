@@ -28,11 +28,11 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-import scipy.linalg
 import sympy as sp
 
 from . import symbolic as sym
-from ._validate import as_float_array, as_matrix, as_vector, check_finite
+from .discretize import van_loan
+from ._validate import as_float_array, as_vector, check_finite
 
 __all__ = [
     "ConstantVelocity", "ConstantAcceleration", "Singer", "KnownTurn", "CoordinatedTurn",
@@ -537,43 +537,6 @@ def turn_state_from_polar(s) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # numerical discretization of any linear model
 # --------------------------------------------------------------------------------------------
-def van_loan(A, G, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    r"""Van Loan's (1978) method: ``F = expm(A dt)`` and the continuous-white-noise
-    :math:`Q = \int_0^{dt} e^{A\tau} G Q_c G^\top e^{A^\top\tau} d\tau` from one matrix exponential,
-
-    .. math::
-
-        \exp\left(\begin{bmatrix} -A & G Q_c G^\top \\ 0 & A^\top \end{bmatrix} dt\right)
-        = \begin{bmatrix} \cdot & F^{-1} Q \\ 0 & F^\top \end{bmatrix} .
-
-    Parameters
-    ----------
-    A : (n, n) continuous-time system matrix. G : (n, m) noise gain.
-    Qc : (m, m) spectral densities of the white noise. dt : interval (s), ``>= 0``.
-
-    Returns
-    -------
-    F, Q : (n, n) each.
-    """
-    A = as_matrix(A, "A")
-    n = A.shape[-1]
-    if A.shape != (n, n):
-        raise ValueError(f"A must have shape (n, n), got shape {A.shape}")
-    G = as_matrix(G, "G", n)
-    Qc = as_matrix(Qc, "Qc", G.shape[1], G.shape[1])
-    d = _dt(dt, nonnegative=True, what=" for the process noise")
-    if d.ndim != 0:
-        raise ValueError(f"dt must be a scalar, got shape {d.shape}")
-    M = np.zeros((2 * n, 2 * n))
-    M[:n, :n] = -A
-    M[:n, n:] = G @ Qc @ G.T
-    M[n:, n:] = A.T
-    E = scipy.linalg.expm(M * float(d))
-    F = E[n:, n:].T
-    Q = F @ E[:n, n:]
-    return F, 0.5 * (Q + Q.T)
-
-
 # --------------------------------------------------------------------------------------------
 # 3-D turns (chapter 6)
 # --------------------------------------------------------------------------------------------

@@ -31,7 +31,7 @@ import scipy.linalg
 import scipy.signal
 
 from ._validate import as_float_array, as_matrix, check_covariance
-from .models import van_loan
+from .discretize import van_loan
 
 __all__ = [
     "SteadyState", "DiscreteSteadyState", "continuous_gain", "discrete_gain", "gain_sequence",
