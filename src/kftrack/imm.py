@@ -1,0 +1,704 @@
+r"""The interacting multiple model (IMM) estimator of Blom & Bar-Shalom (1988), with GPB1 and a
+clairvoyant (mode-matched) filter as references.
+
+A target switches among ``r`` motion **modes** as a Markov chain with
+
+.. math:: \Pi_{ij} = P\{M_k = j \mid M_{k-1} = i\}, \qquad \textstyle\sum_j \Pi_{ij} = 1
+
+(rows are "from", columns "to"). One IMM cycle (Bar-Shalom, Li & Kirubarajan 2001, §11.6.6):
+
+1. mixing probabilities :math:`\bar c_j = \sum_i \Pi_{ij}\mu_i`,
+   :math:`\mu_{i|j} = \Pi_{ij}\mu_i / \bar c_j`;
+2. mixing :math:`x^{0j} = \sum_i \mu_{i|j} x^i`,
+   :math:`P^{0j} = \sum_i \mu_{i|j}[P^i + (x^i - x^{0j})(x^i - x^{0j})^\top]`;
+3. mode-matched prediction from :math:`(x^{0j}, P^{0j})` (:meth:`IMM.predict`, which also sets
+   the predicted mode probabilities :math:`\mu = \bar c`) and update (:meth:`IMM.update`),
+   giving the likelihoods :math:`\Lambda_j = N(\nu_j; 0, S_j)`;
+4. mode probabilities :math:`\mu_j \propto \Lambda_j \bar c_j`, computed in log space with
+   log-sum-exp;
+5. combination (output only, never fed back)
+   :math:`x = \sum_j \mu_j x^j`, :math:`P = \sum_j \mu_j[P^j + (x^j - x)(x^j - x)^\top]`.
+
+A step without a measurement is a :meth:`IMM.predict` alone: the mode probabilities become
+:math:`\mu\Pi` and no likelihood is computed (no "update with nothing").
+
+**Modes** follow a small protocol (:class:`Mode`): an attribute ``n`` (state dimension),
+``predict(x, P, dt) -> (x, P)`` and ``update(x, P, z) -> u`` with ``u.x``, ``u.P``, ``u.loglik``;
+all broadcast over leading batch axes. :class:`KalmanMode` wraps a linear model of
+:mod:`kftrack.models`, :class:`EKFMode` a nonlinear one (e.g. :class:`~kftrack.models.CoordinatedTurn`).
+
+**Modes of different dimension** (constant velocity ``[x, vx, y, vy]`` beside the coordinated
+turn ``[x, vx, y, vy, omega]``). Every mode's state is a subset of one *common* state of
+dimension ``N``: mode ``i`` holds the common components ``components[i]`` (by default the first
+``n_i``, which fits the book's convention of putting ``omega`` last). The rule is **unbiased
+mixing** (Yuan, Bar-Shalom et al. 2012): when mixing into mode ``j``, a source mode ``i`` that
+lacks some of ``j``'s components is completed with **mode j's own estimate and covariance** of
+those components, with zero cross-covariance to ``i``'s components (``i`` carries no information
+about them, and the completed covariance stays positive semi-definite). Components that ``j``
+lacks are simply dropped (marginalized). Zero padding would instead pull ``omega`` towards 0 and
+shrink its variance. The combined output is reported in the common state; there a mode lacking
+components is completed in the same way from the combination of the *full* modes (those holding
+every component; at least one is required).
+
+Shapes: ``x`` ``(..., N)``, ``P`` ``(..., N, N)``, ``mu`` ``(..., r)``; time first for sequences.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import NamedTuple, Protocol, runtime_checkable
+
+import numpy as np
+import scipy.linalg
+
+from ._validate import as_float_array, as_vector, check_covariance, check_finite
+from .ekf import _angles, _ekf_predict, _ekf_update
+from .kalman import Update, _batch, _predict, _sym, _update
+
+__all__ = [
+    "Mode", "KalmanMode", "EKFMode", "IMMState", "IMMResult", "IMM", "GPB1",
+    "sojourn_generator", "sojourn_transition", "first_order_transition", "SojournTransition",
+    "check_transition", "stationary_distribution", "mix_gaussians", "imm_filter", "clairvoyant_filter",
+]
+
+_TOL = 1e-9  # tolerance on sums of probabilities
+
+
+def _logsumexp(a, axis: int, keepdims: bool = False):
+    """log(sum(exp(a))) along ``axis``, shifted by the maximum; all ``-inf`` gives ``-inf``."""
+    m = np.max(a, axis=axis, keepdims=True)
+    m = np.where(np.isfinite(m), m, 0.0)
+    with np.errstate(divide="ignore"):
+        out = np.log(np.sum(np.exp(a - m), axis=axis, keepdims=True)) + m
+    return out if keepdims else np.squeeze(out, axis=axis)
+
+
+class _PerDt:
+    """Cache of ``fn(dt)`` for the few distinct sampling intervals of a run."""
+
+    def __init__(self, fn: Callable):
+        self.fn, self.cache = fn, {}
+
+    def __call__(self, dt):
+        key = float(dt)
+        if key not in self.cache:
+            if len(self.cache) > 64:
+                self.cache.clear()
+            self.cache[key] = self.fn(key)
+        return self.cache[key]
+
+
+# --------------------------------------------------------------------------------------------
+# modes
+# --------------------------------------------------------------------------------------------
+@runtime_checkable
+class Mode(Protocol):
+    """What the IMM needs of a mode-matched filter (all methods broadcast over batch axes).
+
+    Attributes / methods
+    --------------------
+    n : int, state dimension.
+    predict(x, P, dt) -> (x, P) : time update over ``dt`` seconds.
+    update(x, P, z) -> u : measurement update; ``u.x`` ``(..., n)``, ``u.P`` ``(..., n, n)``,
+        ``u.loglik`` ``(...)`` the log-likelihood :math:`\\log N(\\nu; 0, S)` of the innovation.
+    """
+
+    n: int
+
+    def predict(self, x: np.ndarray, P: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def update(self, x: np.ndarray, P: np.ndarray, z: np.ndarray): ...
+
+
+def _measurement(model, R, H):
+    H = np.asarray(model.H if H is None else H, dtype=float)
+    if H.ndim != 2 or H.shape[1] != model.n:
+        raise ValueError(f"H must have shape (m, {model.n}) for a model with {model.n} states, got shape {H.shape}")
+    R = check_covariance(R, "R", H.shape[0], positive_definite=True)
+    return H, R
+
+
+class KalmanMode:
+    """Linear Kalman-filter mode: ``model.F(dt)``, ``model.Q(dt)`` and a linear measurement.
+
+    Parameters
+    ----------
+    model : a linear model of :mod:`kftrack.models` (``ConstantVelocity``, ``KnownTurn``, ...):
+        anything with ``n``, ``F(dt)``, ``Q(dt)`` and, unless ``H`` is given, ``H``.
+    R : (m, m) measurement-noise covariance.
+    H : (m, n) measurement matrix; default ``model.H`` (the positions).
+    """
+
+    def __init__(self, model, R, H=None):
+        self.model = model
+        self.n = int(model.n)
+        self.H, self.R = _measurement(model, R, H)
+        self._FQ = _PerDt(lambda dt: (np.asarray(model.F(dt), dtype=float), np.asarray(model.Q(dt), dtype=float)))
+
+    def predict(self, x, P, dt):
+        """Kalman time update with ``F(dt)``, ``Q(dt)``."""
+        F, Q = self._FQ(dt)
+        return _predict(x, P, F, Q)
+
+    def update(self, x, P, z) -> Update:
+        """Kalman measurement update (Joseph form); see :func:`kftrack.kalman.update`."""
+        return _update(x, P, z, self.H, self.R)
+
+    def __repr__(self) -> str:
+        return f"KalmanMode({self.model!r})"
+
+
+class EKFMode:
+    """Extended-Kalman-filter mode: ``model.f(x, dt)``, ``model.jacobian(x, dt)``, ``model.Q(dt)``.
+
+    Parameters
+    ----------
+    model : e.g. :class:`kftrack.models.CoordinatedTurn` (state ``[x, vx, y, vy, omega]``).
+    R : (m, m) measurement-noise covariance.
+    H : (m, n) linear measurement matrix (default ``model.H``), used unless ``h`` is given.
+    h, H_jac : nonlinear measurement function ``(..., n) -> (..., m)`` and its Jacobian.
+    angle_components : indices of ``z`` that are angles (innovation wrapped), with ``h``.
+    """
+
+    def __init__(self, model, R, H=None, h: Callable | None = None, H_jac: Callable | None = None,
+                 angle_components: Sequence[int] = ()):
+        self.model = model
+        self.n = int(model.n)
+        if (h is None) != (H_jac is None):
+            raise ValueError("h and H_jac go together: give both (nonlinear measurement) or neither")
+        if h is None:
+            self.H, self.R = _measurement(model, R, H)
+            self._h = lambda x: (self.H @ x[..., None])[..., 0]
+            self._H_jac = lambda x: self.H
+        else:
+            self.R = check_covariance(R, "R", positive_definite=True)
+            self._h, self._H_jac = h, H_jac
+        self._angles = _angles(angle_components, self.R.shape[-1])
+
+    def predict(self, x, P, dt):
+        """EKF time update; see :func:`kftrack.ekf.ekf_predict`."""
+        return _ekf_predict(x, P, lambda s: self.model.f(s, dt), lambda s: self.model.jacobian(s, dt),
+                            self.model.Q(dt))
+
+    def update(self, x, P, z) -> Update:
+        """EKF measurement update; see :func:`kftrack.ekf.ekf_update`."""
+        return _ekf_update(x, P, z, self._h, self._H_jac, self.R, self._angles)
+
+    def __repr__(self) -> str:
+        return f"EKFMode({self.model!r})"
+
+
+# --------------------------------------------------------------------------------------------
+# Markov transition matrices
+# --------------------------------------------------------------------------------------------
+def check_transition(Pi, r: int | None = None, name: str = "transition") -> np.ndarray:
+    """Validate a Markov matrix ``Pi[i, j] = P(j at k | i at k-1)``: ``(r, r)``, finite,
+    entries in [0, 1], rows summing to one (to 1e-9). Returns it as a float array."""
+    Pi = check_finite(as_float_array(Pi, name), name)
+    if Pi.ndim != 2 or Pi.shape[0] != Pi.shape[1] or (r is not None and Pi.shape[0] != r):
+        want = f"({r}, {r}) for {r} modes" if r is not None else "(r, r)"
+        raise ValueError(f"{name} must be a square Markov matrix of shape {want}, got shape {Pi.shape}")
+    if np.any(Pi < 0):
+        raise ValueError(f"{name} must have non-negative entries (probabilities), got min {Pi.min():.6g}")
+    rows = Pi.sum(axis=1)
+    if np.any(np.abs(rows - 1.0) > _TOL):
+        raise ValueError(f"{name} rows must sum to 1 (Pi[i, j] = P(j | i)), got row sums {rows.tolist()}")
+    return Pi
+
+
+def _check_probability(mu, r: int, name: str) -> np.ndarray:
+    mu = as_vector(mu, name, r)
+    if np.any(mu < 0):
+        raise ValueError(f"{name} must be a probability vector (entries >= 0), got min {mu.min():.6g}")
+    s = mu.sum(-1)
+    if np.any(np.abs(s - 1.0) > _TOL):
+        raise ValueError(f"{name} must sum to 1 over its last axis, got sum {np.ravel(s)[0]:.12g}")
+    return mu
+
+
+def _check_tau(tau) -> np.ndarray:
+    tau = check_finite(as_float_array(tau, "tau"), "tau")
+    if tau.ndim != 1 or tau.size < 2:
+        raise ValueError(f"tau must be a vector of r >= 2 mean sojourn times (s), got shape {tau.shape}")
+    if np.any(tau <= 0):
+        raise ValueError(f"tau must be > 0 (mean sojourn times, s), got {tau.tolist()}")
+    return tau
+
+
+def sojourn_generator(tau, switch=None) -> np.ndarray:
+    r"""Generator :math:`\Lambda` of a continuous-time mode chain from mean sojourn times.
+
+    :math:`\Lambda_{ii} = -1/\tau_i` and :math:`\Lambda_{ij} = S_{ij}/\tau_i` for :math:`j \ne i`:
+    the mode ``i`` lasts an exponential time of mean :math:`\tau_i`, then jumps to ``j`` with
+    probability :math:`S_{ij}`. Rows of :math:`\Lambda` sum to zero.
+
+    Parameters
+    ----------
+    tau : (r,) mean sojourn times (s), > 0.
+    switch : (r, r) jump probabilities, zero diagonal, rows summing to 1; default: uniform
+        over the other modes.
+    """
+    tau = _check_tau(tau)
+    r = tau.size
+    if switch is None:
+        S = (np.ones((r, r)) - np.eye(r)) / (r - 1)
+    else:
+        S = check_transition(switch, r, "switch")
+        if np.any(np.diag(S) != 0):
+            raise ValueError(f"switch must have a zero diagonal (where a jump goes), got diagonal {np.diag(S).tolist()}")
+    return S / tau[:, None] - np.diag(1.0 / tau)
+
+
+def sojourn_transition(tau, dt: float, switch=None) -> np.ndarray:
+    r"""Markov matrix over an interval ``dt`` from mean sojourn times: :math:`\Pi(dt) = e^{\Lambda dt}`
+    (:func:`sojourn_generator`), valid for any, also irregular, ``dt`` (s, >= 0), with
+    :math:`\Pi(dt_1 + dt_2) = \Pi(dt_1)\Pi(dt_2)`."""
+    d = float(check_finite(as_float_array(dt, "dt"), "dt"))
+    if d < 0:
+        raise ValueError(f"dt must be >= 0, got {d}")
+    Pi = scipy.linalg.expm(sojourn_generator(tau, switch) * d)
+    Pi = np.clip(Pi, 0.0, None)
+    return Pi / Pi.sum(axis=1, keepdims=True)
+
+
+def first_order_transition(tau, dt: float) -> np.ndarray:
+    r"""The common first-order approximation :math:`\Pi_{ii} = 1 - dt/\tau_i` (off-diagonal shared
+    uniformly), as in seed 001's eq. (43); valid only for :math:`dt \ll \tau_i` (requires
+    ``dt <= min(tau)``). Compare with :func:`sojourn_transition`."""
+    tau = _check_tau(tau)
+    d = float(check_finite(as_float_array(dt, "dt"), "dt"))
+    if not 0 <= d <= tau.min():
+        raise ValueError(f"dt must lie in [0, min(tau)] = [0, {tau.min():g}] for the first-order rule, got {d}")
+    return np.eye(tau.size) + sojourn_generator(tau) * d
+
+
+class SojournTransition:
+    """Callable ``dt -> Pi(dt)`` from mean sojourn times (see :func:`sojourn_transition`); pass it
+    as the IMM's ``transition`` for a switching rate that is right for any sampling interval."""
+
+    def __init__(self, tau, switch=None):
+        self.tau = _check_tau(tau)
+        self.generator = sojourn_generator(self.tau, switch)
+        self.switch = switch
+
+    @property
+    def r(self) -> int:
+        """Number of modes."""
+        return self.tau.size
+
+    def __call__(self, dt: float) -> np.ndarray:
+        return sojourn_transition(self.tau, dt, self.switch)
+
+    def __repr__(self) -> str:
+        return f"SojournTransition(tau={self.tau.tolist()})"
+
+
+def stationary_distribution(Pi) -> np.ndarray:
+    r"""Stationary mode probabilities :math:`\pi = \pi\Pi`, :math:`\sum\pi = 1` (left eigenvector
+    for eigenvalue 1; unique for an irreducible chain)."""
+    Pi = check_transition(Pi, name="Pi")
+    r = Pi.shape[0]
+    A = np.vstack([Pi.T - np.eye(r), np.ones((1, r))])
+    b = np.zeros(r + 1)
+    b[-1] = 1.0
+    return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+# --------------------------------------------------------------------------------------------
+# Gaussian mixtures and mixing across dimensions
+# --------------------------------------------------------------------------------------------
+def _moment_match(w, xs, Ps):
+    """Kernel: ``w`` (..., r), ``xs`` (r, ..., n), ``Ps`` (r, ..., n, n) -> (x, P)."""
+    wr = np.moveaxis(w, -1, 0)
+    x = np.einsum("r...,r...i->...i", wr, xs)
+    d = xs - x
+    P = np.einsum("r...,r...ij->...ij", wr, Ps + d[..., :, None] * d[..., None, :])
+    return x, _sym(P)
+
+
+def mix_gaussians(weights, means, covs) -> tuple[np.ndarray, np.ndarray]:
+    r"""Moment-matched single Gaussian of a mixture:
+    :math:`\bar x = \sum_i w_i x_i`, :math:`\bar P = \sum_i w_i [P_i + (x_i - \bar x)(x_i - \bar x)^\top]`.
+
+    Parameters
+    ----------
+    weights : (..., r) probabilities summing to one.
+    means : (r, ..., n) component means; ``covs`` (r, ..., n, n) their covariances.
+    """
+    means = as_vector(means, "means")
+    if means.ndim < 2:
+        raise ValueError(f"means must have shape (r, ..., n), got shape {means.shape}")
+    r, n = means.shape[0], means.shape[-1]
+    w = _check_probability(weights, r, "weights")
+    covs = check_covariance(covs, "covs", n)
+    if covs.shape[0] != r:
+        raise ValueError(f"covs must have shape (r, ..., n, n) with r = {r}, got shape {covs.shape}")
+    return _moment_match(w, means, covs)
+
+
+def _embedding(src: tuple[int, ...], dst: tuple[int, ...]):
+    """Index maps to express a state on components ``src`` in the components ``dst``."""
+    pos = {c: a for a, c in enumerate(src)}
+    shared_dst = np.array([b for b, c in enumerate(dst) if c in pos], dtype=int)
+    shared_src = np.array([pos[c] for c in dst if c in pos], dtype=int)
+    missing_dst = np.array([b for b, c in enumerate(dst) if c not in pos], dtype=int)
+    return shared_src, shared_dst, missing_dst, tuple(src) == tuple(dst)
+
+
+def _complete(x, P, emb, fill_x, fill_P):
+    """Express ``(x, P)`` in the destination components; missing ones from ``(fill_x, fill_P)``
+    with zero cross-covariance (unbiased mixing)."""
+    s_src, s_dst, miss, same = emb
+    if same:
+        return x, P
+    batch = np.broadcast_shapes(x.shape[:-1], fill_x.shape[:-1])
+    n = fill_x.shape[-1]
+    xo = np.array(np.broadcast_to(fill_x, batch + (n,)))
+    Po = np.zeros(batch + (n, n))
+    xo[..., s_dst] = x[..., s_src]
+    Po[..., s_dst[:, None], s_dst] = P[..., s_src[:, None], s_src]
+    if miss.size:
+        Po[..., miss[:, None], miss] = fill_P[..., miss[:, None], miss]
+    return xo, Po
+
+
+# --------------------------------------------------------------------------------------------
+# the estimator
+# --------------------------------------------------------------------------------------------
+class IMMState(NamedTuple):
+    """Immutable state of a multiple-model estimator (batch axes ``...``).
+
+    Attributes
+    ----------
+    x : (..., N) combined mean in the common state.
+    P : (..., N, N) combined covariance.
+    mu : (..., r) mode probabilities (after :meth:`IMM.predict`: the predicted ones, :math:`\\bar c`).
+    log_mu : (..., r) their logarithms (the recursion runs on these).
+    xs : tuple of r arrays (..., n_i), the mode-matched means.
+    Ps : tuple of r arrays (..., n_i, n_i), the mode-matched covariances.
+    loglik : (..., r) mode log-likelihoods of the last update; NaN after a prediction.
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    mu: np.ndarray
+    log_mu: np.ndarray
+    xs: tuple
+    Ps: tuple
+    loglik: np.ndarray
+
+
+class IMM:
+    r"""Interacting multiple model estimator (Blom & Bar-Shalom 1988).
+
+    Parameters
+    ----------
+    modes : sequence of r mode filters following :class:`Mode` (e.g. :class:`KalmanMode`,
+        :class:`EKFMode`).
+    transition : the Markov matrix ``Pi[i, j] = P(mode j at k | mode i at k-1)`` (rows sum to
+        1), either a fixed ``(r, r)`` array (used per step, whatever ``dt``) or a callable
+        ``dt -> Pi`` such as :class:`SojournTransition` (right for any ``dt``).
+    mu0 : (r,) or (..., r) initial mode probabilities.
+    components : optional, for modes of different dimension: ``components[i]`` lists the
+        indices of the common state held by mode ``i`` (default: the first ``n_i``). See the
+        module docstring for the mixing rule.
+
+    Use ``s = imm.initialize(x0, P0)``, then ``s = imm.update(s, z)`` and
+    ``s = imm.predict(s, dt)``; a step with no measurement is a predict alone.
+    """
+
+    def __init__(self, modes: Sequence, transition, mu0, components: Sequence[Sequence[int]] | None = None):
+        modes = tuple(modes)
+        if not modes:
+            raise ValueError("modes must be a non-empty sequence of mode filters, got none")
+        for i, m in enumerate(modes):
+            if not isinstance(m, Mode):
+                raise TypeError(f"modes[{i}] must have n, predict(x, P, dt) and update(x, P, z), "
+                                f"got {type(m).__name__}")
+        self.modes = modes
+        r = len(modes)
+        dims = [int(m.n) for m in modes]
+        if components is None:
+            comps = [tuple(range(d)) for d in dims]
+        else:
+            comps = [tuple(int(c) for c in cs) for cs in components]
+            if len(comps) != r:
+                raise ValueError(f"components must list one index tuple per mode ({r}), got {len(comps)}")
+            for i, (cs, d) in enumerate(zip(comps, dims)):
+                if len(cs) != d or len(set(cs)) != d or min(cs) < 0:
+                    raise ValueError(f"components[{i}] must hold {d} distinct indices >= 0 (mode {i} has "
+                                     f"{d} states), got {cs}")
+        self.components = tuple(comps)
+        universe = sorted(set().union(*comps))
+        if universe != list(range(len(universe))):
+            raise ValueError(f"components must together cover 0..N-1 without gaps, got {sorted(universe)}")
+        self.N = len(universe)
+        full = tuple(i for i, cs in enumerate(comps) if len(cs) == self.N)
+        if not full:
+            raise ValueError("modes must include at least one mode holding every state component "
+                             f"(dimension {self.N}); got dimensions {dims}")
+        self._full = full
+        common = tuple(range(self.N))
+        self._emb = [[_embedding(comps[i], comps[j]) for j in range(r)] for i in range(r)]
+        self._to_common = [_embedding(comps[i], common) for i in range(r)]
+        if callable(transition) and not isinstance(transition, np.ndarray):
+            check_transition(transition(1.0), r)
+            self._transition = _PerDt(lambda dt: check_transition(transition(dt), r))
+        else:
+            Pi = check_transition(transition, r)
+            self._transition = lambda dt: Pi
+        self.mu0 = _check_probability(mu0, r, "mu0")
+
+    @property
+    def r(self) -> int:
+        """Number of modes."""
+        return len(self.modes)
+
+    def transition(self, dt: float) -> np.ndarray:
+        """The Markov matrix used for a step of ``dt`` seconds, ``(r, r)``."""
+        return self._transition(dt)
+
+    # ---- building blocks ------------------------------------------------------------------
+    def _combine(self, log_mu, xs, Ps):
+        mu = np.exp(log_mu)
+        if len(self._full) == 1:
+            k = self._full[0]
+            fx, fP = xs[k], Ps[k]
+        else:
+            w = mu[..., self._full]
+            w = w / w.sum(-1, keepdims=True)
+            fx, fP = _moment_match(w, np.stack([xs[k] for k in self._full]), np.stack([Ps[k] for k in self._full]))
+        full = [_complete(xs[i], Ps[i], self._to_common[i], fx, fP) for i in range(self.r)]
+        x, P = _moment_match(mu, np.stack([a for a, _ in full]), np.stack([b for _, b in full]))
+        return mu, x, P
+
+    def _state(self, log_mu, xs, Ps, loglik) -> IMMState:
+        mu, x, P = self._combine(log_mu, xs, Ps)
+        return IMMState(x, P, mu, log_mu, tuple(xs), tuple(Ps), loglik)
+
+    def _mixing_log_weights(self, log_mu, Pi):
+        """``log mu_{i|j}`` (..., r_i, r_j) and ``log cbar_j`` (..., r_j)."""
+        with np.errstate(divide="ignore"):
+            logPi = np.log(Pi)
+        joint = log_mu[..., :, None] + logPi  # (..., i, j)
+        log_cbar = _logsumexp(joint, axis=-2)
+        with np.errstate(invalid="ignore"):
+            logw = joint - log_cbar[..., None, :]
+        # a mode j that cannot be reached (cbar_j = 0) keeps its own estimate
+        dead = np.isneginf(log_cbar)
+        if np.any(dead):
+            eye = np.where(np.eye(self.r, dtype=bool), 0.0, -np.inf)
+            logw = np.where(dead[..., None, :], eye, logw)
+        return logw, log_cbar
+
+    def _mix(self, w, xs, Ps):
+        """Mixed initial conditions per destination mode; ``w`` (..., r_i, r_j)."""
+        out_x, out_P = [], []
+        for j in range(self.r):
+            parts = [_complete(xs[i], Ps[i], self._emb[i][j], xs[j], Ps[j]) for i in range(self.r)]
+            x0, P0 = _moment_match(w[..., :, j], np.stack([a for a, _ in parts]), np.stack([b for _, b in parts]))
+            out_x.append(x0)
+            out_P.append(P0)
+        return out_x, out_P
+
+    def _mixing_weights(self, log_mu, Pi):
+        logw, log_cbar = self._mixing_log_weights(log_mu, Pi)
+        return np.exp(logw), log_cbar
+
+    # ---- public API -----------------------------------------------------------------------
+    def initialize(self, x0, P0, mu0=None) -> IMMState:
+        """Initial state: every mode starts from ``(x0, P0)`` restricted to its components.
+
+        Parameters
+        ----------
+        x0 : (..., N) mean in the common state; ``P0`` (..., N, N).
+        mu0 : optional (..., r) mode probabilities (default: the constructor's ``mu0``).
+        """
+        x0 = as_vector(x0, "x0", self.N)
+        P0 = check_covariance(P0, "P0", self.N)
+        mu = self.mu0 if mu0 is None else _check_probability(mu0, self.r, "mu0")
+        batch = _batch({"x0": x0.shape[:-1], "P0": P0.shape[:-2], "mu0": mu.shape[:-1]})
+        xs, Ps = [], []
+        for cs in self.components:
+            idx = np.array(cs)
+            xs.append(np.broadcast_to(x0[..., idx], batch + (idx.size,)).copy())
+            Ps.append(np.broadcast_to(P0[..., idx[:, None], idx], batch + (idx.size, idx.size)).copy())
+        with np.errstate(divide="ignore"):
+            log_mu = np.broadcast_to(np.log(mu), batch + (self.r,)).copy()
+        return self._state(log_mu, xs, Ps, np.full(batch + (self.r,), np.nan))
+
+    def predict(self, state: IMMState, dt: float) -> IMMState:
+        """Mixing (steps 1–2) and mode-matched prediction over ``dt``; ``mu`` becomes the
+        predicted :math:`\\bar c = \\mu\\Pi(dt)`. Alone, it is a step without a measurement."""
+        w, log_cbar = self._mixing_weights(state.log_mu, self.transition(dt))
+        x0, P0 = self._mix(w, state.xs, state.Ps)
+        pred = [m.predict(a, b, dt) for m, a, b in zip(self.modes, x0, P0)]
+        return self._state(log_cbar, [p[0] for p in pred], [p[1] for p in pred],
+                           np.full(log_cbar.shape, np.nan))
+
+    def update(self, state: IMMState, z) -> IMMState:
+        """Mode-matched updates with ``z`` (..., m) and the mode-probability update
+        :math:`\\mu_j \\propto \\Lambda_j \\bar c_j` (log-sum-exp), then the combination."""
+        z = as_vector(z, "z")
+        return self._update(state, z)
+
+    def _update(self, state: IMMState, z) -> IMMState:
+        ups = [m.update(a, b, z) for m, a, b in zip(self.modes, state.xs, state.Ps)]
+        loglik = np.stack([np.asarray(u.loglik, dtype=float) for u in ups], axis=-1)
+        joint = state.log_mu + loglik
+        log_mu = joint - _logsumexp(joint, axis=-1, keepdims=True)
+        return self._state(log_mu, [u.x for u in ups], [u.P for u in ups], loglik)
+
+
+class GPB1(IMM):
+    r"""First-order generalized pseudo-Bayesian estimator (Ackerson & Fu 1970; Bar-Shalom et al.
+    2001, §11.6.5): every mode starts each cycle from the **same** Gaussian, the combination of
+    all modes, :math:`x^{0j} = \sum_i \mu_i x^i` (mixing weights :math:`\mu_i` instead of
+    :math:`\mu_{i|j}`). Same API and conventions as :class:`IMM`; a reference that the IMM
+    should beat at the same cost."""
+
+    def _mixing_weights(self, log_mu, Pi):
+        _, log_cbar = self._mixing_log_weights(log_mu, Pi)
+        mu = np.exp(log_mu)
+        return np.broadcast_to(mu[..., :, None], mu.shape + (self.r,)), log_cbar
+
+
+# --------------------------------------------------------------------------------------------
+# whole sequences
+# --------------------------------------------------------------------------------------------
+class IMMResult(NamedTuple):
+    """A filtered sequence, time first (``T`` steps): combined posterior ``x`` (T, ..., N),
+    ``P`` (T, ..., N, N), mode probabilities ``mu`` (T, ..., r), mode log-likelihoods
+    ``loglik`` (T, ..., r) (NaN without a measurement), and the combined prior ``x_prior``,
+    ``P_prior`` and predicted mode probabilities ``mu_prior`` of each step."""
+
+    x_prior: np.ndarray
+    P_prior: np.ndarray
+    mu_prior: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+    mu: np.ndarray
+    loglik: np.ndarray
+
+
+def _keep_where(gone, old: IMMState, new: IMMState) -> IMMState:
+    """``old`` where ``gone`` (batch mask), ``new`` elsewhere, field by field."""
+    def sel(a, b, extra):
+        return np.where(gone.reshape(gone.shape + (1,) * extra), a, b)
+
+    return IMMState(sel(old.x, new.x, 1), sel(old.P, new.P, 2), sel(old.mu, new.mu, 1),
+                    sel(old.log_mu, new.log_mu, 1), tuple(sel(a, b, 1) for a, b in zip(old.xs, new.xs)),
+                    tuple(sel(a, b, 2) for a, b in zip(old.Ps, new.Ps)), sel(old.loglik, new.loglik, 1))
+
+
+def _check_zs(zs) -> tuple[np.ndarray, np.ndarray]:
+    """Measurements ``(T, ..., m)``; returns them and the mask ``(T, ...)`` of missing rows."""
+    zs = as_vector(zs, "zs", allow_nan=True)
+    if zs.ndim < 2:
+        raise ValueError(f"zs must have shape (T, ..., m) with time first, got shape {zs.shape}")
+    gone = np.isnan(zs).all(-1)
+    if not np.isfinite(zs[~gone]).all():
+        raise ValueError("zs rows must be finite, or all NaN for a missing measurement; got inf or a partly NaN row")
+    return zs, gone
+
+
+def _dts(dt, T: int) -> np.ndarray:
+    d = check_finite(as_float_array(dt, "dt"), "dt")
+    if d.ndim == 0:
+        d = np.full(T, float(d))
+    if d.shape != (T,) or np.any(d < 0):
+        raise ValueError(f"dt must be a scalar or have shape ({T},) (one interval after each step), "
+                         f"with dt >= 0; got {np.asarray(dt)!r}")
+    return d
+
+
+def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None) -> IMMResult:
+    """Run an :class:`IMM` (or :class:`GPB1`) over a measurement sequence: at each step update
+    with ``zs[k]`` (skipped, not faked, when the row is NaN), then predict over ``dt[k]``.
+
+    Parameters
+    ----------
+    estimator : an :class:`IMM` or :class:`GPB1`.
+    zs : (T, ..., m) measurements, time first; rows of NaN mark missing measurements.
+    x0, P0 : (..., N), (..., N, N) prior of step 0, in the common state.
+    dt : interval (s) after each step, scalar or (T,).
+    mu0 : optional initial mode probabilities (default: the estimator's).
+    """
+    zs, row_missing = _check_zs(zs)
+    T = zs.shape[0]
+    dts = _dts(dt, T)
+    N, r = estimator.N, estimator.r
+    x0 = as_vector(x0, "x0", N)
+    P0 = check_covariance(P0, "P0", N)
+    mu0 = estimator.mu0 if mu0 is None else _check_probability(mu0, r, "mu0")
+    batch = _batch({"zs[k]": zs.shape[1:-1], "x0": x0.shape[:-1], "P0": P0.shape[:-2], "mu0": mu0.shape[:-1]})
+    s = estimator.initialize(np.broadcast_to(x0, batch + (N,)), np.broadcast_to(P0, batch + (N, N)),
+                             np.broadcast_to(mu0, batch + (r,)))
+    out = {k: np.empty((T,) + batch + shp) for k, shp in
+           (("x_prior", (N,)), ("P_prior", (N, N)), ("mu_prior", (r,)), ("x", (N,)), ("P", (N, N)), ("mu", (r,)),
+            ("loglik", (r,)))}
+    for k in range(T):
+        out["x_prior"][k], out["P_prior"][k], out["mu_prior"][k] = s.x, s.P, s.mu
+        gone = np.broadcast_to(row_missing[k], batch)
+        if not gone.all():
+            new = estimator._update(s, np.where(gone[..., None], 0.0, zs[k]))
+            s = _keep_where(gone, s, new) if gone.any() else new
+        out["x"][k], out["P"][k], out["mu"][k], out["loglik"][k] = s.x, s.P, s.mu, s.loglik
+        if k < T - 1:
+            s = estimator.predict(s, dts[k])
+    return IMMResult(**out)
+
+
+def clairvoyant_filter(modes: Sequence, mode_sequence, zs, x0, P0, dt) -> tuple[np.ndarray, np.ndarray]:
+    """Model-matched reference filter that is **told the true mode** at every step: it predicts
+    with mode ``mode_sequence[k]`` from step ``k`` to ``k + 1``. A lower bound on what any
+    multiple-model estimator can achieve with these modes.
+
+    Parameters
+    ----------
+    modes : r mode filters of the **same** state dimension ``n`` and the same measurement model
+        (the updates use ``modes[0].update``).
+    mode_sequence : (T,) or (T, ...) integer mode index in force from step k to k + 1 (the last
+        row is unused); batch axes select a different sequence per run.
+    zs : (T, ..., m) measurements (NaN rows: missing); ``x0``, ``P0`` prior of step 0.
+    dt : interval (s), scalar or (T,).
+
+    Returns
+    -------
+    x, P : (T, ..., n), (T, ..., n, n) posterior estimates.
+    """
+    modes = tuple(modes)
+    dims = {int(m.n) for m in modes}
+    if len(dims) != 1:
+        raise ValueError(f"modes must all have the same state dimension, got {sorted(dims)}")
+    zs, row_missing = _check_zs(zs)
+    T = zs.shape[0]
+    dts = _dts(dt, T)
+    seq = np.asarray(mode_sequence)
+    if seq.shape[:1] != (T,) or not np.issubdtype(seq.dtype, np.integer) or seq.min() < 0 or seq.max() >= len(modes):
+        raise ValueError(f"mode_sequence must be integers in [0, {len(modes) - 1}] with time first, length {T}; "
+                         f"got shape {seq.shape}, dtype {seq.dtype}")
+    n = dims.pop()
+    x0 = as_vector(x0, "x0", n)
+    P0 = check_covariance(P0, "P0", n)
+    batch = _batch({"zs[k]": zs.shape[1:-1], "mode_sequence[k]": seq.shape[1:], "x0": x0.shape[:-1],
+                    "P0": P0.shape[:-2]})
+    x = np.broadcast_to(x0, batch + (n,)).copy()
+    P = np.broadcast_to(P0, batch + (n, n)).copy()
+    out_x, out_P = np.empty((T,) + batch + (n,)), np.empty((T,) + batch + (n, n))
+    for k in range(T):
+        gone = np.broadcast_to(row_missing[k], batch)
+        if not gone.all():
+            u = modes[0].update(x, P, np.where(gone[..., None], 0.0, zs[k]))
+            x = np.where(gone[..., None], x, u.x)
+            P = np.where(gone[..., None, None], P, u.P)
+        out_x[k], out_P[k] = x, P
+        if k < T - 1:
+            sk = np.broadcast_to(seq[k], batch)
+            nx, nP = np.empty_like(x), np.empty_like(P)
+            for i in np.unique(sk):
+                xi, Pi_ = modes[i].predict(x, P, dts[k])
+                sel = sk == i
+                nx = np.where(sel[..., None], xi, nx)
+                nP = np.where(sel[..., None, None], Pi_, nP)
+            x, P = nx, nP
+    return out_x, out_P
