@@ -78,3 +78,20 @@ def check_covariance(value, name: str, n: int | None = None, positive_definite: 
             f"{name} must be positive semi-definite, but its smallest eigenvalue is {np.min(eig[..., 0]):.3g}"
         )
     return arr
+
+
+def as_measurement_sequence(value, name: str = "zs") -> tuple[np.ndarray, np.ndarray]:
+    """A measurement sequence ``(T, ..., m)``, time first, where a row of NaN marks a missing
+    measurement. Returns the array and the ``(T, ...)`` mask of missing rows; inf or a partly
+    NaN row raises ``ValueError``."""
+    arr = as_vector(value, name, allow_nan=True)
+    if arr.ndim < 2:
+        raise ValueError(f"{name} must have shape (T, ..., m) with time first, got shape {arr.shape}")
+    if np.isinf(arr).any():
+        raise ValueError(f"{name} must be finite or NaN (missing), but it contains inf")
+    missing = np.isnan(arr)
+    partial = missing.any(-1) & ~missing.all(-1)
+    if partial.any():
+        k = int(np.argwhere(partial)[0][0])
+        raise ValueError(f"{name} has a row at step {k} that is only partly NaN; a missing measurement is a row of NaN")
+    return arr, missing.all(-1)

@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validate import as_matrix, as_vector, check_covariance
+from ._validate import as_matrix, as_measurement_sequence, as_vector, check_covariance
 
 __all__ = ["Update", "FilterResult", "SmootherResult", "predict", "update", "kalman_filter", "rts_smoother"]
 
@@ -196,22 +196,13 @@ def _check_sequence(zs, x0, P0, Q, R):
     marks the all-NaN measurement rows.
     """
     x0, P0, n = _check_state(x0, P0)
-    zs = as_vector(zs, "zs", allow_nan=True)
-    if zs.ndim < 2:
-        raise ValueError(f"zs must have shape (T, ..., m) with time first, got shape {zs.shape}")
-    if np.isinf(zs).any():
-        raise ValueError("zs must be finite or NaN (missing), but it contains inf")
-    missing = np.isnan(zs)
-    partial = missing.any(-1) & ~missing.all(-1)
-    if partial.any():
-        k = int(np.argwhere(partial)[0][0])
-        raise ValueError(f"zs has a row at step {k} that is only partly NaN; a missing measurement is a row of NaN")
+    zs, row_missing = as_measurement_sequence(zs, "zs")
     m = zs.shape[-1]
     Q = check_covariance(Q, "Q", n)
     R = check_covariance(R, "R", m, positive_definite=True)
     batch = _batch({"zs[k]": zs.shape[1:-1], "x0": x0.shape[:-1], "P0": P0.shape[:-2],
                     "Q": Q.shape[:-2], "R": R.shape[:-2]})
-    return zs, x0, P0, Q, R, n, m, batch, missing.all(-1)
+    return zs, x0, P0, Q, R, n, m, batch, row_missing
 
 
 def _run_sequence(zs, x0, P0, batch, row_missing, predict, update, progress: bool = False) -> FilterResult:
