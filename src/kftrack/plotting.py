@@ -98,3 +98,71 @@ def plot_chi2_band(ax, t, mean, bounds, label: str | None = None, **kwargs):
     (line,) = ax.plot(t, mean, label=label, **kwargs)
     ax.axhspan(bounds[0], bounds[1], color="0.5", alpha=0.2, lw=0)
     return line
+
+
+# --------------------------------------------------------------------------------------------
+# robot localization and SLAM (chapter 15)
+# --------------------------------------------------------------------------------------------
+__all__ += ["plot_walls", "plot_slam_map", "slam_animation"]
+
+
+def plot_walls(ax, walls, **kwargs):
+    """Draw a floor plan ``(W, 2, 2)`` of wall segments (m) on ``ax``."""
+    kwargs.setdefault("color", "0.3")
+    kwargs.setdefault("lw", 2.0)
+    for (x0, y0), (x1, y1) in np.asarray(walls, dtype=float):
+        ax.plot([x0, x1], [y0, y1], **kwargs)
+    ax.set_aspect("equal", adjustable="datalim")
+    return ax
+
+
+def plot_slam_map(ax, x, P, nsigma: float = 2.0, color: str = "C0", robot: bool = True):
+    """Draw an EKF-SLAM estimate ``x`` ``(3 + 2N,)``, ``P``: each landmark with its ``nsigma``
+    ellipse and, with ``robot=True``, the robot position, heading tick and ellipse."""
+    x, P = np.asarray(x, dtype=float), np.asarray(P, dtype=float)
+    artists = []
+    for j in range((x.shape[-1] - 3) // 2):
+        s = slice(3 + 2 * j, 5 + 2 * j)
+        artists.append(covariance_ellipse(ax, x[s], P[s, s], nsigma=nsigma, color=color))
+        artists += ax.plot(*x[s], "+", color=color, ms=5)
+    if robot:
+        artists.append(covariance_ellipse(ax, x[:2], P[:2, :2], nsigma=nsigma, color="C3"))
+        artists += ax.plot(x[0], x[1], "o", color="C3", ms=4)
+        artists += ax.plot([x[0], x[0] + 0.8 * np.cos(x[2])], [x[1], x[1] + 0.8 * np.sin(x[2])], color="C3")
+    return artists
+
+
+def slam_animation(result, truth, landmarks, frames: int = 16, nsigma: float = 2.0, dpi: int = 50,
+                   figsize=(4.0, 4.0)):
+    """A small ``matplotlib.animation.FuncAnimation`` of one EKF-SLAM run: the true path and
+    landmarks (black), the estimated robot with its ellipse (red) and the map with its ellipses
+    (blue), at ``frames`` evenly spaced steps. ``result`` is a :class:`kftrack.slam.SlamResult`
+    of one run, ``truth`` ``(T, 3)``, ``landmarks`` ``(L, 2)``. Render with ``to_jshtml()``."""
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import FuncAnimation
+
+    steps = np.linspace(0, len(result.x) - 1, int(frames)).round().astype(int)
+    fig, ax = plt.subplots(figsize=figsize, dpi=dpi)
+    lm = np.asarray(landmarks, dtype=float)
+    lo, hi = lm.min(0) - 1.5, lm.max(0) + 1.5
+    dynamic: list = []
+
+    def draw(i):
+        for a in dynamic:
+            a.remove()
+        dynamic.clear()
+        k = steps[i]
+        dynamic.extend(ax.plot(truth[: k + 1, 0], truth[: k + 1, 1], color="k", lw=0.8))
+        dynamic.extend(plot_slam_map(ax, result.x[k], result.P[k], nsigma=nsigma))
+        ax.set_title(f"step {k}")
+        return dynamic
+
+    ax.plot(lm[:, 0], lm[:, 1], "k*", ms=5)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    anim = FuncAnimation(fig, draw, frames=len(steps), interval=400, blit=False)
+    plt.close(fig)
+    return anim
