@@ -33,7 +33,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ._validate import as_matrix, as_vector, check_covariance
+from ._validate import as_float_array, as_matrix, as_vector, check_covariance
 from .kalman import FilterResult, Update, _batch, _check_sequence, _check_state, _predict, _run_sequence, _sym, _T, _update
 
 __all__ = ["wrap_angle", "residual", "linearized_transform", "ekf_predict", "ekf_update", "extended_kalman_filter",
@@ -178,8 +178,9 @@ def ekf_update(x, P, z, h: Vector, H_jac: Vector, R, angle_components: Sequence[
 
 
 def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H_jac: Vector, R,
-                           angle_components: Sequence[int] = (), *, progress: bool = False) -> FilterResult:
-    """Filter a whole measurement sequence with the EKF: update with ``zs[k]``, then predict.
+                           angle_components: Sequence[int] = (), *, R_per_step: bool = False,
+                           progress: bool = False) -> FilterResult:
+    r"""Filter a whole measurement sequence with the EKF: update with ``zs[k]``, then predict.
 
     Same conventions as :func:`kftrack.kalman.kalman_filter` (``x0`` is the prior of step 0,
     rows of NaN are missing measurements); inputs are validated once, then the loop runs the
@@ -189,15 +190,27 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H
     ----------
     zs : (T, ..., m) measurements, time first.
     x0, P0 : (..., n), (..., n, n) prior of step 0.
-    f, F_jac, Q : transition, its Jacobian, process noise (see :func:`ekf_predict`).
+    f, F_jac, Q : transition, its Jacobian, process noise (see :func:`ekf_predict`). ``Q`` may
+        also be a callable ``(..., n) -> (..., n, n)``: state-dependent process noise evaluated
+        at the filtered estimate before each prediction (seed 001's
+        :math:`Q = \Gamma(\hat x)\,\Sigma\,\Gamma(\hat x)^\top`, :meth:`kftrack.models.Turn3DAngles.Q`).
     h, H_jac, R : measurement function, its Jacobian, measurement noise (see :func:`ekf_update`).
     angle_components : indices of the measurement that are angles (innovations wrapped).
+    R_per_step : if True, ``R`` is time first, ``(T, ..., m, m)``: one covariance per step (and
+        per run), as converted measurements need (:meth:`kftrack.sensors.radar.Radar.to_cartesian`).
     progress : show a tqdm progress bar over the time steps (off in notebooks).
 
     Returns
     -------
     kftrack.kalman.FilterResult
     """
+    Q_fn = Q if callable(Q) else None
+    x0c, _, n0 = _check_state(x0, P0)
+    if Q_fn is not None:
+        Q = _call(Q_fn, x0c, "Q", (n0, n0))
+    R_seq = None
+    if R_per_step:
+        R_seq, R = _per_step(R, zs)
     zs, x0, P0, Q, R, n, m, batch, row_missing = _check_sequence(zs, x0, P0, Q, R)
     angles = _angles(angle_components, m)
     xb = np.broadcast_to(x0, batch + (n,))
@@ -205,9 +218,46 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H
     _call(F_jac, xb, "F_jac", (n, n))
     _call(h, xb, "h", (m,))
     _call(H_jac, xb, "H_jac", (m, n))
-    return _run_sequence(zs, x0, P0, batch, row_missing,
-                lambda x, P: _ekf_predict(x, P, f, F_jac, Q),
-                lambda x, P, z: _ekf_update(x, P, z, h, H_jac, R, angles), progress)
+    if Q_fn is not None:
+        check_covariance(_call(Q_fn, xb, "Q", (n, n)), "Q(x0)", n)  # every run's start
+        predict = lambda x, P: _ekf_predict(x, P, f, F_jac, Q_fn(x))  # noqa: E731
+    else:
+        predict = lambda x, P: _ekf_predict(x, P, f, F_jac, Q)  # noqa: E731
+    if R_seq is None:
+        return _run_sequence(zs, x0, P0, batch, row_missing, predict,
+                             lambda x, P, z: _ekf_update(x, P, z, h, H_jac, R, angles), progress)
+    # one covariance per step: carry it through the loop next to the measurement
+    T = zs.shape[0]
+    try:
+        R_seq = np.broadcast_to(R_seq, (T,) + batch + (m, m))
+    except ValueError:
+        raise ValueError(f"R must have shape (T, ..., {m}, {m}) matching the batch {batch}, got {R_seq.shape}") from None
+    zb = np.broadcast_to(zs, (T,) + batch + (m,))
+    R_seq = np.where(np.isnan(zb).all(-1)[..., None, None], np.eye(m), R_seq)
+    packed = np.concatenate([zb, R_seq.reshape((T,) + batch + (m * m,))], axis=-1)
+
+    def update(x, P, z):
+        Rk = z[..., m:].reshape(z.shape[:-1] + (m, m))
+        # runs without a measurement arrive zeroed (their result is discarded): keep S invertible
+        Rk = np.where(np.all(Rk == 0.0, axis=(-2, -1))[..., None, None], np.eye(m), Rk)
+        return _ekf_update(x, P, z[..., :m], h, H_jac, Rk, angles)
+
+    return _run_sequence(packed, x0, P0, batch, row_missing, predict, update, progress)
+
+
+def _per_step(R, zs) -> tuple[np.ndarray, np.ndarray]:
+    """Check a time-first ``R`` ``(T, ..., m, m)`` against ``zs`` ``(T, ..., m)``; return it and
+    its first step (for the shared boundary checks)."""
+    zs_arr = np.asarray(zs, dtype=float)
+    R = as_float_array(R, "R")
+    gone = np.isnan(zs_arr).all(-1) if zs_arr.ndim else np.zeros(())
+    if R.shape[:-2] == gone.shape and gone.any():  # steps without a measurement may carry NaN covariances
+        R = np.where(gone[..., None, None], np.eye(R.shape[-1]), R)
+    R = check_covariance(R, "R", zs_arr.shape[-1] if zs_arr.ndim else None, positive_definite=True)
+    if R.ndim < 3 or R.shape[0] != zs_arr.shape[0]:
+        raise ValueError(f"R must have shape (T, ..., m, m) with T = {zs_arr.shape[0] if zs_arr.ndim else '?'} "
+                         f"steps when R_per_step=True, got shape {R.shape}")
+    return R, R[0]
 
 
 def simulate_additive_gaussian(f: Vector, h: Vector, x0, P0, Q, R, steps: int, rng: np.random.Generator,

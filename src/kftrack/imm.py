@@ -44,6 +44,7 @@ Shapes: ``x`` ``(..., N)``, ``P`` ``(..., N, N)``, ``mu`` ``(..., r)``; time fir
 """
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable, Sequence
 from typing import NamedTuple, Protocol, runtime_checkable
 
@@ -147,8 +148,20 @@ class KalmanMode:
         return f"KalmanMode({self.model!r})"
 
 
+def _takes_state(Q: Callable) -> bool:
+    """True when ``Q`` takes two required positional parameters ``(x, dt)``."""
+    try:
+        params = inspect.signature(Q).parameters.values()
+    except (TypeError, ValueError):  # builtins without a signature: the usual Q(dt)
+        return False
+    required = [p for p in params if p.default is p.empty
+                and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    return len(required) == 2
+
+
 class EKFMode:
-    """Extended-Kalman-filter mode: ``model.f(x, dt)``, ``model.jacobian(x, dt)``, ``model.Q(dt)``.
+    r"""Extended-Kalman-filter mode: ``model.f(x, dt)``, ``model.jacobian(x, dt)``, ``model.Q(dt)``
+    (or ``model.Q(x, dt)``, see ``state_dependent_Q``).
 
     Parameters
     ----------
@@ -157,12 +170,20 @@ class EKFMode:
     H : (m, n) linear measurement matrix (default ``model.H``), used unless ``h`` is given.
     h, H_jac : nonlinear measurement function ``(..., n) -> (..., m)`` and its Jacobian.
     angle_components : indices of ``z`` that are angles (innovation wrapped), with ``h``.
+    state_dependent_Q : whether the process noise depends on the state, called as
+        ``model.Q(x, dt)`` at the estimate being predicted (the mixed estimate in the IMM), as
+        seed 001's :meth:`kftrack.models.Turn3DAngles.Q`
+        :math:`\Gamma(\hat x)\Sigma\Gamma(\hat x)^\top`. Default ``None``: detected from the
+        signature (two parameters ``(x, dt)``); otherwise ``model.Q(dt)``.
     """
 
     def __init__(self, model, R, H=None, h: Callable | None = None, H_jac: Callable | None = None,
-                 angle_components: Sequence[int] = ()):
+                 angle_components: Sequence[int] = (), state_dependent_Q: bool | None = None):
         self.model = model
         self.n = int(model.n)
+        if state_dependent_Q is None:
+            state_dependent_Q = _takes_state(model.Q)
+        self.state_dependent_Q = bool(state_dependent_Q)
         if (h is None) != (H_jac is None):
             raise ValueError("h and H_jac go together: give both (nonlinear measurement) or neither")
         if h is None:
@@ -176,8 +197,8 @@ class EKFMode:
 
     def predict(self, x, P, dt):
         """EKF time update; see :func:`kftrack.ekf.ekf_predict`."""
-        return _ekf_predict(x, P, lambda s: self.model.f(s, dt), lambda s: self.model.jacobian(s, dt),
-                            self.model.Q(dt))
+        Q = self.model.Q(x, dt) if self.state_dependent_Q else self.model.Q(dt)
+        return _ekf_predict(x, P, lambda s: self.model.f(s, dt), lambda s: self.model.jacobian(s, dt), Q)
 
     def update(self, x, P, z) -> Update:
         """EKF measurement update; see :func:`kftrack.ekf.ekf_update`."""

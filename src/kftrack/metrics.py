@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from ._validate import as_vector, check_covariance
+from ._validate import as_float_array, as_vector, check_covariance, check_finite
 
 __all__ = ["rmse", "nees", "nis", "anees", "chi2_bounds"]
 
@@ -266,3 +266,57 @@ def pcrlb(P0, F, Q, H, R, steps: int | None = None, *, average_runs: bool = Fals
         Bp = 0.5 * (Bp + np.swapaxes(Bp, -1, -2))
     shape = np.broadcast_shapes(*(a.shape for a in out_B))
     return PCRLB(*(np.stack([np.broadcast_to(a, shape) for a in lst]) for lst in (out_Bp, out_B, out_J)))
+
+
+# --------------------------------------------------------------------------------------------
+# Seed 001's running RMS (Agner Júnior et al. 2019, eqs. 44–46; chapter 12)
+# --------------------------------------------------------------------------------------------
+__all__ += ["running_rms", "mean_running_rms"]
+
+
+def running_rms(errors) -> np.ndarray:
+    r"""Running RMS over time of each error component (seed 001, eq. 44):
+
+    .. math:: \mathrm{RMS}^i_k = \sqrt{\frac1k\sum_{j=1}^{k}\big(e^i_j\big)^2}, \qquad k = 1, \dots, n .
+
+    Parameters
+    ----------
+    errors : (n, ..., d) errors, time first (e.g. one-step prediction minus true position per
+        axis). Restart the sum at a segment's start by passing only that segment.
+
+    Returns
+    -------
+    (n, ..., d) running RMS.
+    """
+    e = check_finite(as_float_array(errors, "errors"), "errors")
+    if e.ndim < 1 or e.shape[0] < 1:
+        raise ValueError(f"errors must have shape (n, ..., d) with n >= 1 time steps, got shape {e.shape}")
+    k = np.arange(1, e.shape[0] + 1).reshape((-1,) + (1,) * (e.ndim - 1))
+    return np.sqrt(np.cumsum(e**2, axis=0) / k)
+
+
+def mean_running_rms(errors) -> tuple[np.ndarray, np.ndarray]:
+    r"""Seed 001's accuracy criterion: the mean over time of the running RMS per component
+    (eq. 45) and its Euclidean norm over the components (eq. 46),
+
+    .. math::
+
+        \overline{\mathrm{RMS}}_i = \frac1n\sum_{k=1}^n \mathrm{RMS}^i_k, \qquad
+        \lVert\overline{\mathrm{RMS}}\rVert = \sqrt{\textstyle\sum_i \overline{\mathrm{RMS}}_i^{\,2}} .
+
+    It weighs early errors more than late ones (error :math:`j` enters every
+    :math:`\mathrm{RMS}_k` with :math:`k \ge j`), so it is not the usual RMSE.
+
+    Parameters
+    ----------
+    errors : (n, ..., d) errors, time first, components last (see :func:`running_rms`).
+
+    Returns
+    -------
+    rms_bar : (..., d) eq. 45; norm : (...) eq. 46.
+    """
+    e = as_float_array(errors, "errors")
+    if e.ndim < 2:
+        raise ValueError(f"errors must have shape (n, ..., d) (time first, components last), got shape {e.shape}")
+    rms_bar = np.mean(running_rms(e), axis=0)
+    return rms_bar, np.sqrt(np.sum(rms_bar**2, axis=-1))

@@ -670,6 +670,36 @@ class Turn3DAngles:
         return G @ S @ np.swapaxes(G, -1, -2)
 
     @staticmethod
+    def state_from_motion(r, v, a) -> np.ndarray:
+        r"""The 8-state ``[x, vx, y, vy, h, vh, omega_chi, omega_gamma]`` of a motion with
+        position ``r``, velocity ``v`` and acceleration ``a`` (each ``(..., 3)``): the rates are
+        the derivatives of :math:`\chi = \operatorname{atan2}(v_y, v_x)` and
+        :math:`\gamma = \operatorname{atan2}(v_h, \rho)`, :math:`\rho = \sqrt{v_x^2 + v_y^2}`,
+
+        .. math::
+
+            \omega_\chi = \frac{v_x a_y - v_y a_x}{\rho^2}, \qquad
+            \omega_\gamma = \frac{\rho\, a_h - v_h \dot\rho}{\lVert v\rVert^2}, \quad
+            \dot\rho = \frac{v_x a_x + v_y a_y}{\rho}.
+
+        Use it for the truth of a filter on :func:`kftrack.scenarios.tilted_zigzag`, whose
+        turns in a tilted plane have varying rates. Singular for vertical flight (``rho = 0``).
+        """
+        r = as_vector(r, "r", 3)
+        v = as_vector(v, "v", 3)
+        a = as_vector(a, "a", 3)
+        vx, vy, vh = np.moveaxis(v, -1, 0)
+        ax, ay, ah = np.moveaxis(a, -1, 0)
+        rho = np.hypot(vx, vy)
+        if np.any(rho == 0):
+            raise ValueError("v must have a horizontal component (rho > 0): the heading is undefined in vertical flight")
+        w_chi = (vx * ay - vy * ax) / rho**2
+        w_gam = (rho * ah - vh * (vx * ax + vy * ay) / rho) / (rho**2 + vh**2)
+        shape = np.broadcast_shapes(r.shape, v.shape, a.shape)[:-1]
+        parts = [r[..., 0], vx, r[..., 1], vy, r[..., 2], vh, w_chi, w_gam]
+        return np.stack([np.broadcast_to(p, shape) for p in parts], axis=-1)
+
+    @staticmethod
     def f_exact(x, dt) -> np.ndarray:
         r"""Exact transition, ``(..., 8)``: speed kept,
         :math:`\mathbf v(t) = v[\cos\chi\cos\gamma, \sin\chi\cos\gamma, \sin\gamma]` with
