@@ -75,7 +75,7 @@ def test_simulate_matches_ode_solver_with_speed_change():
     G = fr.frenet_generator(seg.kappa, seg.tau)
 
     def rhs(_, y):
-        r, E, v = y[:3], y[3:12].reshape(3, 3), y[12]
+        E, v = y[3:12].reshape(3, 3), y[12]
         return np.concatenate([v * E[0], (v * G @ E).ravel(), [seg.accel]])
 
     sol = solve_ivp(rhs, (0, tr.t[-1]), np.concatenate([np.zeros(3), E0.ravel(), [10.0]]),

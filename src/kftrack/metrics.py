@@ -10,12 +10,15 @@ Conventions (Bar-Shalom, Li & Kirubarajan 2001, §5.4):
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy import stats
 
-from ._validate import as_float_array, as_vector, check_covariance, check_finite
+from ._validate import as_float_array, as_matrix, as_vector, check_covariance, check_finite
 
-__all__ = ["rmse", "nees", "nis", "anees", "chi2_bounds"]
+__all__ = ["rmse", "nees", "nis", "anees", "chi2_bounds", "Consistency", "consistency", "PCRLB", "pcrlb",
+           "running_rms", "mean_running_rms"]
 
 
 def rmse(estimate, truth, axis=None, *, vector: bool = False) -> np.ndarray:
@@ -101,14 +104,9 @@ def chi2_bounds(dof: int, runs: int = 1, confidence: float = 0.95, *, normalize:
 # --------------------------------------------------------------------------------------------
 # Monte Carlo consistency tests and the posterior Cramér–Rao lower bound (nonlinear filtering)
 # --------------------------------------------------------------------------------------------
-from typing import NamedTuple as _NamedTuple  # noqa: E402
-
-from ._validate import as_matrix as _as_matrix  # noqa: E402
-
-__all__ += ["Consistency", "consistency", "PCRLB", "pcrlb"]
 
 
-class Consistency(_NamedTuple):
+class Consistency(NamedTuple):
     r"""Monte Carlo consistency test of a chi-square statistic (NEES or NIS).
 
     Attributes
@@ -173,7 +171,7 @@ def consistency(values, dof: int, confidence: float = 0.95) -> Consistency:
                        int(dof), runs, steps)
 
 
-class PCRLB(_NamedTuple):
+class PCRLB(NamedTuple):
     """Posterior Cramér–Rao lower bounds, time first: ``P_prior`` ``(T, ..., n, n)`` bounds the
     one-step prediction error covariance (before measurement ``k``), ``P`` the filtered one,
     and ``J = inv(P)`` is the Fisher information."""
@@ -184,7 +182,7 @@ class PCRLB(_NamedTuple):
 
 
 def _sequence(value, name: str, steps: int, rows: int, cols: int, lengths: tuple[int, ...]) -> np.ndarray:
-    arr = _as_matrix(value, name, rows, cols)
+    arr = as_matrix(value, name, rows, cols)
     if arr.ndim == 2:
         return arr[None]
     if arr.shape[0] not in lengths:
@@ -271,7 +269,6 @@ def pcrlb(P0, F, Q, H, R, steps: int | None = None, *, average_runs: bool = Fals
 # --------------------------------------------------------------------------------------------
 # Seed 001's running RMS (Agner Júnior et al. 2019, eqs. 44–46; chapter 12)
 # --------------------------------------------------------------------------------------------
-__all__ += ["running_rms", "mean_running_rms"]
 
 
 def running_rms(errors) -> np.ndarray:

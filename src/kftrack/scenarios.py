@@ -38,13 +38,17 @@ from typing import Mapping, NamedTuple
 
 import numpy as np
 
+from . import frenet as _fr
+from . import slam as _slam
 from ._validate import as_float_array, check_finite
+from .ekf import wrap_angle as _wrap_angle
 
 __all__ = [
     "Scenario", "Printed", "printed", "CarRadarStudy", "RobotStudy", "COSTA2023_CAR",
     "COSTA2023_ROBOT", "car_radar", "robot_truth", "robot",
     "ManoeuvreScenario", "DroneScenario", "MARTINS2018_SCENARIOS", "drone_scenario", "tilted_zigzag",
     "climbing_helix", "torsion_manoeuvre",
+    "floor_plan", "drive", "apartment_loop", "ring_landmarks", "SlamScenario", "slam_loop",
 ]
 
 
@@ -374,7 +378,6 @@ def robot(rng: np.random.Generator, n_steps: int = 35, *, sigma: float = 3.0, dt
 # --------------------------------------------------------------------------------------------
 # curves in space (chapter 6): seed 000's drone scenarios, seed 001's tilted zig-zag, and more
 # --------------------------------------------------------------------------------------------
-from . import frenet as _fr  # noqa: E402  (models layer, below the worlds)
 
 
 class ManoeuvreScenario(NamedTuple):
@@ -528,10 +531,6 @@ def torsion_manoeuvre(rng: np.random.Generator, *, sigma: float = 10.0, dt: floa
 # Chapter 15 (seed 003's missing simulation chapter): a floor plan, robot paths, landmark maps.
 # Our reconstruction: the study names no environment, path or noise level.
 # --------------------------------------------------------------------------------------------
-from . import slam as _slam  # noqa: E402
-from .ekf import wrap_angle as _wrap_angle  # noqa: E402
-
-__all__ += ["floor_plan", "drive", "apartment_loop", "ring_landmarks", "SlamScenario", "slam_loop"]
 
 
 def floor_plan() -> np.ndarray:
