@@ -1,0 +1,233 @@
+r"""Monte Carlo comparison of several filters on one scenario.
+
+Numerics layer: pure functions, no plotting, no printing. The pattern of a case-study chapter
+(11: the drone, 12: the 3-D radar targets) is
+
+1. one truth, ``N`` independent noise realisations, **time first**: ``zs`` ``(T, N, m)``
+   (:func:`noisy_runs`);
+2. each filter runs **once** over all the runs (the batch axis of :mod:`kftrack.kalman`,
+   :mod:`kftrack.ekf`, :mod:`kftrack.imm`): :func:`run_filters`;
+3. one error number per run and filter (:func:`per_run_error`: the time-averaged squared
+   Euclidean error, study 000's "EQM", or its square root, the RMSE), collected in a
+   :class:`Comparison`;
+4. statements backed by statistics: the mean and its standard error, **paired** differences
+   between filters run by run (:func:`paired_difference`: the same noise for both, so the
+   run-to-run spread of the scenario cancels), and where a single published run falls in the
+   distribution of single runs (:meth:`Comparison.percentile`).
+
+Shapes: ``estimate`` ``(T, ..., n)``, ``truth`` ``(T, n)`` or ``(T, ..., n)``; per-run values
+``(...)``, typically ``(N,)``.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import NamedTuple
+
+import numpy as np
+
+from ._validate import as_float_array, as_vector, check_finite
+
+__all__ = ["noisy_runs", "per_run_error", "PairedDifference", "paired_difference", "Comparison", "compare",
+           "run_filters"]
+
+
+def noisy_runs(rng: np.random.Generator, clean, sigma, runs: int) -> np.ndarray:
+    r"""``runs`` independent noisy copies of a clean measurement sequence, time first:
+    :math:`z_k^{(i)} = h_k + \sigma\,w_k^{(i)}`, :math:`w \sim N(0, I)` white in time and run.
+
+    Parameters
+    ----------
+    rng : the random generator.
+    clean : (T, m) noise-free measurements (e.g. the true positions).
+    sigma : noise standard deviation, scalar or (m,) per component (same unit as ``clean``).
+    runs : number of Monte Carlo runs ``N`` (>= 1).
+
+    Returns
+    -------
+    (T, N, m) measurements.
+    """
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    clean = as_vector(clean, "clean")
+    if clean.ndim != 2:
+        raise ValueError(f"clean must have shape (T, m), time first, got shape {clean.shape}")
+    s = check_finite(as_float_array(sigma, "sigma"), "sigma")
+    if s.ndim > 1 or (s.ndim == 1 and s.shape != clean.shape[-1:]) or np.any(s < 0):
+        raise ValueError(f"sigma must be a scalar or have shape ({clean.shape[-1]},), with sigma >= 0; "
+                         f"got {np.asarray(sigma)!r}")
+    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
+        raise ValueError(f"runs must be an integer >= 1, got {runs!r}")
+    T, m = clean.shape
+    return clean[:, None, :] + s * rng.standard_normal((T, int(runs), m))
+
+
+def per_run_error(estimate, truth, components: Sequence[int] | None = None, *, start: int = 0,
+                  root: bool = False) -> np.ndarray:
+    r"""Time-averaged squared Euclidean error of each run,
+
+    .. math:: \mathrm{EQM} = \frac{1}{T - k_0}\sum_{k=k_0}^{T-1}\lVert \hat x_k - x_k\rVert^2
+
+    over the selected state components (study 000's eq. 73, in m² for positions), or its square
+    root, the per-run RMSE, with ``root=True``.
+
+    Parameters
+    ----------
+    estimate : (T, ..., n) estimates, time first.
+    truth : (T, n') (shared by all runs) or (T, ..., n'); ``n' = n`` unless ``components``
+        is given (the estimate may hold more, e.g. a turn rate ``omega`` last).
+    components : indices of the state to compare (e.g. ``[0, 2]`` for the positions of
+        ``[x, vx, y, vy]``), the same in ``estimate`` and ``truth``; default all.
+    start : first step counted (skips a start-up transient), ``0 <= start < T``.
+    root : return the RMSE instead of the mean squared error.
+
+    Returns
+    -------
+    (...) one value per run.
+    """
+    est = as_vector(estimate, "estimate")
+    tru = as_vector(truth, "truth", None if components is not None else est.shape[-1])
+    if est.ndim < 2 or tru.shape[0] != est.shape[0]:
+        raise ValueError(f"estimate (T, ..., n) and truth (T, n) must share the time axis first, got shapes "
+                         f"{est.shape} and {tru.shape}")
+    T = est.shape[0]
+    if tru.ndim == 2 and est.ndim > 2:
+        tru = tru.reshape((T,) + (1,) * (est.ndim - 2) + tru.shape[-1:])
+    if components is not None:
+        idx = np.asarray(components, dtype=int)
+        n = min(est.shape[-1], tru.shape[-1])
+        if idx.ndim != 1 or idx.size == 0 or idx.min() < 0 or idx.max() >= n:
+            raise ValueError(f"components must be a non-empty list of indices in [0, {n - 1}] (components held "
+                             f"by both estimate and truth), got {components!r}")
+        est, tru = est[..., idx], tru[..., idx]
+    if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or not 0 <= start < T:
+        raise ValueError(f"start must be an integer step in [0, {T - 1}], got {start!r}")
+    try:
+        sq = np.sum((est[start:] - tru[start:]) ** 2, axis=-1)
+    except ValueError:
+        raise ValueError(f"estimate and truth must broadcast, got shapes {est.shape} and {tru.shape}") from None
+    mse = sq.mean(axis=0)
+    return np.sqrt(mse) if root else mse
+
+
+class PairedDifference(NamedTuple):
+    """Run-by-run difference ``a - b`` of two filters' per-run errors on the same noise.
+
+    Attributes
+    ----------
+    mean : mean difference over the runs.
+    se : its standard error, ``std(ddof=1) / sqrt(runs)``.
+    z : ``mean / se``: how many standard errors ``a`` is above ``b`` (negative: ``a`` better).
+        Over ``runs >= 30`` independent runs it is close to standard normal when the two
+        filters are equally good.
+    runs : number of runs.
+    """
+
+    mean: float
+    se: float
+    z: float
+    runs: int
+
+
+def paired_difference(a, b) -> PairedDifference:
+    """:class:`PairedDifference` of per-run values ``a`` and ``b`` (same shape, >= 2 runs)."""
+    a = np.ravel(check_finite(as_float_array(a, "a"), "a"))
+    b = np.ravel(check_finite(as_float_array(b, "b"), "b"))
+    if a.shape != b.shape or a.size < 2:
+        raise ValueError(f"a and b must hold the same number (>= 2) of per-run values, got {a.size} and {b.size}")
+    d = a - b
+    mean, se = float(d.mean()), float(d.std(ddof=1) / np.sqrt(d.size))
+    z = mean / se if se > 0 else (0.0 if mean == 0 else np.copysign(np.inf, mean))
+    return PairedDifference(mean, se, float(z), int(d.size))
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """Per-run errors of several filters on the same Monte Carlo runs.
+
+    Attributes
+    ----------
+    values : mapping filter name -> (N,) per-run error (read-only), in insertion order.
+    """
+
+    values: Mapping[str, np.ndarray]
+
+    def __post_init__(self):
+        vals = {}
+        sizes = set()
+        for name, v in dict(self.values).items():
+            arr = np.ravel(check_finite(as_float_array(v, f"values[{name!r}]"), f"values[{name!r}]")).copy()
+            arr.setflags(write=False)
+            vals[name] = arr
+            sizes.add(arr.size)
+        if not vals or len(sizes) != 1 or sizes.pop() < 1:
+            raise ValueError("values must map at least one filter name to per-run errors, the same number of runs "
+                             f"for every filter; got sizes { {k: v.size for k, v in vals.items()} }")
+        object.__setattr__(self, "values", MappingProxyType(vals))
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Filter names, in insertion order."""
+        return tuple(self.values)
+
+    @property
+    def runs(self) -> int:
+        """Number of Monte Carlo runs."""
+        return next(iter(self.values.values())).size
+
+    def _get(self, name: str) -> np.ndarray:
+        if name not in self.values:
+            raise ValueError(f"name must be one of {self.names}, got {name!r}")
+        return self.values[name]
+
+    def mean(self, name: str) -> float:
+        """Mean of the per-run errors."""
+        return float(self._get(name).mean())
+
+    def std(self, name: str) -> float:
+        """Run-to-run standard deviation (ddof = 1): the spread of a single run's value."""
+        v = self._get(name)
+        return float(v.std(ddof=1)) if v.size > 1 else float("nan")
+
+    def sem(self, name: str) -> float:
+        """Standard error of :meth:`mean`, ``std / sqrt(runs)``."""
+        return self.std(name) / np.sqrt(self.runs)
+
+    def paired(self, a: str, b: str) -> PairedDifference:
+        """Run-by-run difference ``a - b`` (:func:`paired_difference`)."""
+        return paired_difference(self._get(a), self._get(b))
+
+    def percentile(self, name: str, value: float) -> float:
+        """Fraction of the runs whose error is ``<= value``: where a single run with error
+        ``value`` (e.g. a study's published one) falls in the distribution of single runs."""
+        return float(np.mean(self._get(name) <= float(value)))
+
+    def ranking(self) -> tuple[str, ...]:
+        """Filter names from the lowest to the highest mean error."""
+        return tuple(sorted(self.names, key=self.mean))
+
+
+def compare(estimates: Mapping[str, np.ndarray], truth, components: Sequence[int] | None = None, *,
+            start: int = 0, root: bool = False) -> Comparison:
+    """:class:`Comparison` of estimates ``(T, N, n)`` (one per filter name) against ``truth``
+    with :func:`per_run_error` (same ``components``, ``start``, ``root`` for every filter)."""
+    if not isinstance(estimates, Mapping) or not estimates:
+        raise TypeError(f"estimates must be a non-empty mapping name -> (T, N, n) array, got {type(estimates).__name__}")
+    return Comparison({name: per_run_error(x, truth, components, start=start, root=root)
+                       for name, x in estimates.items()})
+
+
+def run_filters(filters: Mapping[str, Callable], zs) -> dict[str, np.ndarray]:
+    """Run each filter once on all the Monte Carlo runs: ``filters[name](zs)`` returns the
+    estimates ``(T, N, n)`` or a result with an ``x`` attribute (``FilterResult``,
+    ``IMMResult``); returns name -> estimates, ready for :func:`compare`."""
+    if not isinstance(filters, Mapping) or not filters:
+        raise TypeError(f"filters must be a non-empty mapping name -> callable(zs), got {type(filters).__name__}")
+    out = {}
+    for name, fn in filters.items():
+        if not callable(fn):
+            raise TypeError(f"filters[{name!r}] must be callable(zs), got {type(fn).__name__}")
+        res = fn(zs)
+        out[name] = np.asarray(getattr(res, "x", res), dtype=float)
+    return out
