@@ -172,7 +172,7 @@ def test_sampled_filter_converges_to_continuous():
 
 
 def test_bad_input():
-    with pytest.raises(ValueError, match="a"):
+    with pytest.raises(ValueError, match=r"^a must"):
         at.tilt_from_accel([1.0, 2.0])
     with pytest.raises(ValueError, match="order"):
         at.kinematic_model(3)

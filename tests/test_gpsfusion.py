@@ -104,7 +104,7 @@ def test_heading_wraps_across_pi():
 def test_filter_bad_input():
     with pytest.raises(ValueError, match="zs"):
         gf.speed_heading_filter(np.zeros((5, 6)), np.zeros(4), np.eye(4), np.eye(4), np.eye(6))
-    with pytest.raises(ValueError, match="R"):
+    with pytest.raises(ValueError, match=r"^R must"):
         gf.speed_heading_filter(np.zeros((5, 8)), np.zeros(4), np.eye(4), np.eye(4), np.eye(4))
     with pytest.raises(ValueError, match="x0"):
         gf.speed_heading_filter(np.zeros((5, 4)), np.zeros(3), np.eye(4), np.eye(4), np.eye(4))
@@ -267,7 +267,9 @@ def test_bias_model_bad_input():
         gf.gauss_markov_bias_model(1.0, 0.1, [1.0], [-1.0], 0.0, [0.3], [0.1])
     with pytest.raises(ValueError, match="rho"):
         gf.gauss_markov_bias_model(1.0, 0.1, [1.0, 1.0], [1.0, 1.0], -1.5, [0.3, 0.3], [0.1, 0.1])
-    with pytest.raises(ValueError, match="z"):
+    with pytest.raises(ValueError, match=r"^tau must be a scalar or have shape \(2,\)"):  # 3 taus, 2 receivers
+        gf.gauss_markov_bias_model(1.0, 0.1, [1.0, 2.0], [1.0, 2.0, 3.0], 0.1, 1.0, 1.0)
+    with pytest.raises(ValueError, match=r"^z must"):
         gf.velocity_measurements(np.zeros(4))
 
 

@@ -415,6 +415,18 @@ def test_bad_modes_and_components_are_rejected():
         imm.mix_gaussians([0.3, 0.3], np.zeros((2, 3)), np.stack([np.eye(3)] * 2))
 
 
+def test_measurement_of_the_wrong_size_is_rejected_naming_it():
+    """A 3-vector measurement for modes measuring 2 positions fails at the boundary with the
+    argument's name, not as a broadcasting error inside the update."""
+    est = imm.IMM(_two(), np.eye(2), [0.5, 0.5])
+    with pytest.raises(ValueError, match=r"zs must have shape \(\.\.\., 2\)"):
+        imm.imm_filter(est, np.zeros((4, 3)), np.zeros(4), np.eye(4), DT)
+    with pytest.raises(ValueError, match=r"z must have shape \(\.\.\., 2\)"):
+        est.update(est.initialize(np.zeros(4), np.eye(4)), np.zeros(3))
+    with pytest.raises(ValueError, match=r"zs must have shape \(\.\.\., 2\)"):
+        imm.clairvoyant_filter(_two(), np.zeros(4, int), np.zeros((4, 1)), np.zeros(4), np.eye(4), DT)
+
+
 def test_imm_beats_both_single_model_filters_on_a_turning_track():
     """Straight 20 s, turn at 0.08 rad/s for 20 s, straight 20 s; 100 runs. Stated margin: the
     run-by-run RMSE difference to each single-model Kalman filter is positive by more than

@@ -247,3 +247,8 @@ def test_kalman_filter_bad_input():
         kalman.kalman_filter(np.full((3, 2), np.inf), np.zeros(4), np.eye(4), F, Q, H, R)
     with pytest.raises(TypeError, match="result must be a FilterResult"):
         kalman.rts_smoother((1, 2), F)
+    res = kalman.kalman_filter(np.zeros((5, 2)), np.zeros(4), np.eye(4), F, Q, H, R)
+    with pytest.raises(ValueError, match=r"F must have shape \(4, 4\) or the filter's batch axes"):
+        kalman.rts_smoother(res, np.broadcast_to(F, (3, 4, 4)))  # more batch axes than the filter had
+    with pytest.raises(ValueError, match="F must have shape"):
+        kalman.rts_smoother(res, np.eye(3))

@@ -75,7 +75,7 @@ def test_turn3d_exact_on_planar_turn_not_on_helix():
 def test_turn3d_bad_input():
     with pytest.raises(ValueError, match="omega"):
         M.Turn3D(omega=[0.1, 0.2])
-    with pytest.raises(ValueError, match="q"):
+    with pytest.raises(ValueError, match=r"^q must"):
         M.Turn3D(omega=0.1, q=-1.0)
     with pytest.raises(ValueError, match="dt"):
         M.Turn3D(omega=0.1, q=1.0).Q(-1.0)

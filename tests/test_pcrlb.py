@@ -132,7 +132,7 @@ def test_bad_input_names_the_argument():
         metrics.pcrlb(np.eye(2), np.eye(2), np.eye(2), np.eye(2), np.eye(2))
     with pytest.raises(ValueError, match="P0"):
         metrics.pcrlb(np.zeros((2, 2)), np.eye(2), np.eye(2), np.eye(2), np.eye(2), steps=3)
-    with pytest.raises(ValueError, match="H"):
+    with pytest.raises(ValueError, match=r"^H must"):
         metrics.pcrlb(np.eye(2), np.eye(2), np.eye(2), np.zeros((4, 1, 2)), np.eye(1), steps=3)
     with pytest.raises(ValueError, match="average_runs"):
         metrics.pcrlb(np.eye(2), np.eye(2), np.eye(2), np.zeros((3, 1, 2)), np.eye(1), average_runs=True)

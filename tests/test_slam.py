@@ -250,10 +250,17 @@ def test_icp_localization_beats_dead_reckoning():
     (lambda: slam.observe([0, 0, 0], [1, 1, 1]), "landmark"),
     (lambda: slam.slam_update(np.zeros(5), np.eye(5), [1.0, 0.0], 3, np.eye(2)), "j"),
     (lambda: slam.slam_update(np.zeros(4), np.eye(4), [1.0, 0.0], 0, np.eye(2)), "x"),
+    (lambda: slam.landmark_block(-1), "j must be a landmark index"),
     (lambda: slam.add_landmark(np.zeros(3), np.eye(3), [1.0, 0.0, 0.0], np.eye(2)), "z"),
     (lambda: slam.associate(np.zeros(5), np.eye(5), np.ones((2, 2)), np.eye(2), gate=1.5), "gate"),
     (lambda: slam.ekf_slam(np.zeros(3), np.eye(3), np.zeros((4, 2)), 0.1, [], np.eye(2), slam.Unicycle(1, 1)),
      "observations"),
+    (lambda: slam.ekf_slam(np.zeros(3), np.eye(3), np.zeros((2, 2)), 0.1, [([0, 1], np.ones((1, 2)))] * 2, np.eye(2),
+                           slam.Unicycle(1, 1)), r"observations\[0\] must be \(ids \(M,\), z"),  # 2 ids, 1 measurement
+    (lambda: slam.ekf_slam(np.zeros(3), np.eye(3), np.zeros((2, 2)), 0.1, [([0], [[1.0, np.nan]])] * 2, np.eye(2),
+                           slam.Unicycle(1, 1)), r"observations\[0\] z must be finite"),
+    (lambda: slam.pose_nees(slam.ekf_slam(np.zeros(3), np.eye(3), np.zeros((2, 2)), 0.1, [([], np.zeros((0, 2)))] * 2,
+                                          np.eye(2), slam.Unicycle(1, 1)), np.zeros((3, 3))), r"truth must have shape \(2,"),
     (lambda: sc.slam_loop(np.random.default_rng(0), np.ones((3, 3))), "landmarks"),
 ])
 def test_bad_input_names_the_argument(call, name):

@@ -145,7 +145,7 @@ def test_complementary_residual_detects_non_complementary_and_bad_input():
     assert np.max(np.abs(num)) > 0.5
     with pytest.raises(ValueError, match="denominator"):
         steady.complementary_residual(([1.0], [1.0, 2.0]), ([1.0], [1.0, 3.0]), 1)
-    with pytest.raises(ValueError, match="k"):
+    with pytest.raises(ValueError, match=r"^k must"):
         steady.complementary_residual(([1.0], [1.0, 2.0]), ([1.0], [1.0, 2.0]), -1)
 
 
@@ -191,6 +191,8 @@ def test_run_steady_filter_equals_kalman_in_steady_state():
     np.testing.assert_allclose(xs2[5], F_CV @ xs2[4])
     with pytest.raises(ValueError, match="us"):
         steady.run_steady_filter(F_CV, [[0.0], [1.0]], H_POS, None, ss.K, zs)
+    with pytest.raises(ValueError, match=r"x0 must have shape \(2,\)"):
+        steady.run_steady_filter(F_CV, None, H_POS, None, ss.K, zs, x0=np.zeros(3))
 
 
 def test_observability_known_cases():
@@ -213,19 +215,24 @@ def test_gramian_of_lti_system_matches_lyapunov_integral():
 
 
 def test_bad_input_messages():
-    with pytest.raises(ValueError, match="R"):
+    with pytest.raises(ValueError, match=r"^R must"):
         steady.continuous_gain([[0.0]], [[1.0]], [[1.0]], [[0.0]])
-    with pytest.raises(ValueError, match="Q"):
+    with pytest.raises(ValueError, match=r"^Q must"):
         steady.discrete_gain(F_CV, H_POS, [[1.0, 0.0], [0.0, -1.0]], [[1.0]])
-    with pytest.raises(ValueError, match="A"):
+    with pytest.raises(ValueError, match=r"^A must"):
         steady.continuous_gain(np.ones((2, 3)), [[1.0, 0.0]], np.eye(2), [[1.0]])
-    with pytest.raises(ValueError, match="C"):
+    with pytest.raises(ValueError, match=r"^C must"):
         steady.observability_matrix(np.eye(2), [[1.0, 0.0, 0.0]])
     with pytest.raises(ValueError, match="steps"):
         steady.gain_sequence(F_CV, H_POS, np.eye(2), [[1.0]], np.eye(2), 0)
-    with pytest.raises(TypeError, match="A"):
+    with pytest.raises(TypeError, match=r"^A must"):
         steady.observability_gramian(np.eye(2), [[1.0, 0.0]], 0.0, 1.0)
     with pytest.raises(ValueError, match="t1"):
         steady.observability_gramian(lambda t: np.eye(2), [[1.0, 0.0]], 1.0, 1.0)
-    with pytest.raises(ValueError, match="L"):
+    with pytest.raises(ValueError, match=r"^L must"):
         steady.estimator_tf(np.eye(2), None, [[1.0, 0.0]], None, np.ones((3, 1)))
+    # an unstable mode that is not measured (H = 0): no stabilizing Riccati solution
+    with pytest.raises(ValueError, match=r"no stabilizing solution: \(F, H\) must be detectable"):
+        steady.discrete_gain([[2.0]], [[0.0]], [[1.0]], [[1.0]])
+    with pytest.raises(ValueError, match=r"no stabilizing solution: \(A, C\) must be detectable"):
+        steady.continuous_gain([[1.0]], [[0.0]], [[1.0]], [[1.0]])

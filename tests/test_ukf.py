@@ -147,11 +147,18 @@ def test_update_near_bearing_pi_matches_rotated_geometry(update):
 
 
 def test_state_angle_is_wrapped_after_update():
-    # state [heading]; measure the heading directly; prior just below pi, measurement just above -pi
+    # state [heading]; measure the heading directly; prior just below pi, measurement just above -pi.
+    # The precise measurement pulls the mean across the cut: pi - 0.01 + K * 0.02 with K = P / (P + R)
+    # exceeds pi, so the state must come back wrapped to just above -pi (with equal variances the
+    # mean would land on pi exactly and the test could not tell wrapping from no wrapping).
     h = lambda x: x
-    up = ukf.ukf_update([np.pi - 0.01], [[0.01]], [-np.pi + 0.01], h, [[0.01]], angle_components=[0],
+    P, R = 0.01, 1e-4
+    up = ukf.ukf_update([np.pi - 0.01], [[P]], [-np.pi + 0.01], h, [[R]], angle_components=[0],
                         state_angles=[0])
-    assert -np.pi < up.x[0] <= np.pi and abs(abs(up.x[0]) - np.pi) < 0.011
+    expected = np.pi - 0.01 + P / (P + R) * 0.02 - 2 * np.pi
+    assert -np.pi < up.x[0] <= np.pi
+    assert up.x[0] == pytest.approx(expected, abs=1e-12)
+    assert up.y[0] == pytest.approx(0.02, abs=1e-12)  # the innovation is wrapped as well
 
 
 def test_bad_input_names_the_argument():
@@ -170,5 +177,5 @@ def test_bad_input_names_the_argument():
         ukf.unscented_transform(lambda v: v[..., 0], x, P)
     with pytest.raises(ValueError, match="Wm"):
         ukf.weighted_moments(np.zeros((5, 2)), np.ones(4), np.ones(5))
-    with pytest.raises(ValueError, match="R"):
+    with pytest.raises(ValueError, match=r"^R must"):
         ukf.ukf_update(x, P, x, lambda v: v, -np.eye(2))

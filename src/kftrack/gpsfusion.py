@@ -244,9 +244,16 @@ def gauss_markov_bias_model(dt: float, q: float, sigma_gm, tau, rho: float, sigm
     """
     sig = np.atleast_1d(as_float_array(sigma_gm, "sigma_gm"))
     r = sig.size
-    tau = np.broadcast_to(as_float_array(tau, "tau"), (r,))
-    white = np.broadcast_to(as_float_array(sigma_white, "sigma_white"), (r,))
-    svel = np.broadcast_to(as_float_array(sigma_vel, "sigma_vel"), (r,))
+
+    def per_receiver(value, name):
+        arr = as_float_array(value, name)
+        if arr.ndim > 1 or arr.size not in (1, r):
+            raise ValueError(f"{name} must be a scalar or have shape ({r},), one per receiver of sigma_gm, "
+                             f"got shape {arr.shape}")
+        return np.broadcast_to(arr.reshape(-1), (r,))
+
+    tau, white, svel = (per_receiver(v, name) for v, name in
+                        ((tau, "tau"), (sigma_white, "sigma_white"), (sigma_vel, "sigma_vel")))
     if not (dt > 0 and q >= 0 and np.all(tau > 0) and np.all(sig > 0) and np.all(white > 0) and np.all(svel > 0)):
         raise ValueError("dt, tau, sigma_gm, sigma_white and sigma_vel must be positive and q >= 0; "
                          f"got dt={dt!r}, q={q!r}, tau={tau}, sigma_gm={sig}, sigma_white={white}, sigma_vel={svel}")

@@ -560,6 +560,7 @@ class IMM:
         """Mode-matched updates with ``z`` (..., m) and the mode-probability update
         :math:`\\mu_j \\propto \\Lambda_j \\bar c_j` (log-sum-exp), then the combination."""
         z = as_vector(z, "z")
+        _check_measurement_size(self.modes, z, "z")
         return self._update(state, z)
 
     def _update(self, state: IMMState, z) -> IMMState:
@@ -622,6 +623,16 @@ def _check_zs(zs) -> tuple[np.ndarray, np.ndarray]:
     return zs, gone
 
 
+def _check_measurement_size(modes, z: np.ndarray, name: str) -> None:
+    """Raise ``ValueError`` naming ``name`` if the last axis of ``z`` is not the size of the
+    measurement of every mode that exposes its ``R``."""
+    for i, mode in enumerate(modes):
+        R = getattr(mode, "R", None)
+        if R is not None and np.shape(R)[-1] != z.shape[-1]:
+            raise ValueError(f"{name} must have shape (..., {np.shape(R)[-1]}), the measurement size of modes[{i}] "
+                             f"(its R), got shape {z.shape}")
+
+
 def _dts(dt, T: int) -> np.ndarray:
     d = check_finite(as_float_array(dt, "dt"), "dt")
     if d.ndim == 0:
@@ -645,6 +656,7 @@ def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None) -> IMMResult:
     mu0 : optional initial mode probabilities (default: the estimator's).
     """
     zs, row_missing = _check_zs(zs)
+    _check_measurement_size(estimator.modes, zs, "zs")
     T = zs.shape[0]
     dts = _dts(dt, T)
     N, r = estimator.N, estimator.r
@@ -692,6 +704,7 @@ def clairvoyant_filter(modes: Sequence, mode_sequence, zs, x0, P0, dt) -> tuple[
     if len(dims) != 1:
         raise ValueError(f"modes must all have the same state dimension, got {sorted(dims)}")
     zs, row_missing = _check_zs(zs)
+    _check_measurement_size(modes[:1], zs, "zs")  # the updates use modes[0]
     T = zs.shape[0]
     dts = _dts(dt, T)
     seq = np.asarray(mode_sequence)

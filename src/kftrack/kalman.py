@@ -39,7 +39,8 @@ class Update(NamedTuple):
     Attributes
     ----------
     x : (..., n) posterior mean.
-    P : (..., n, n) posterior covariance (Joseph form, symmetric).
+    P : (..., n, n) posterior covariance (Joseph form, symmetric; with ``form="standard"`` the
+        short form :math:`(I - KH)P`, not symmetrized).
     y : (..., m) innovation ``z - H x``.
     S : (..., m, m) innovation covariance ``H P H^T + R``.
     K : (..., n, m) Kalman gain.
@@ -114,6 +115,14 @@ def _check_form(form) -> str:
     return form
 
 
+def _innovation_score(y, S) -> tuple[np.ndarray, np.ndarray]:
+    r"""NIS :math:`y^\top S^{-1} y` and Gaussian log-likelihood :math:`\log N(y; 0, S)` of an innovation."""
+    Sinv_y = np.linalg.solve(S, y[..., None])[..., 0]
+    nis = np.einsum("...i,...i->...", y, Sinv_y)
+    _, logdet = np.linalg.slogdet(S)
+    return nis, -0.5 * (nis + logdet + y.shape[-1] * _LOG_2PI)
+
+
 def _update(x, P, z, H, R, form: str = "joseph") -> Update:
     y = z - _mv(H, x)
     PHt = P @ _T(H)
@@ -125,11 +134,7 @@ def _update(x, P, z, H, R, form: str = "joseph") -> Update:
         P_post = _sym(I_KH @ P @ _T(I_KH) + K @ R @ _T(K))
     else:  # "standard": the short form (I - KH) P, as computed (not symmetrized)
         P_post = I_KH @ P
-    Sinv_y = np.linalg.solve(S, y[..., None])[..., 0]
-    nis = np.einsum("...i,...i->...", y, Sinv_y)
-    _, logdet = np.linalg.slogdet(S)
-    loglik = -0.5 * (nis + logdet + y.shape[-1] * _LOG_2PI)
-    return Update(x_post, P_post, y, S, K, nis, loglik)
+    return Update(x_post, P_post, y, S, K, *_innovation_score(y, S))
 
 
 def _check_state(x, P):
@@ -283,6 +288,10 @@ def rts_smoother(result: FilterResult, F) -> SmootherResult:
         raise TypeError(f"result must be a FilterResult from kalman_filter, got {type(result).__name__}")
     n = result.x.shape[-1]
     F = as_matrix(F, "F", n, n)
+    batch = result.x.shape[1:-1]
+    if _batch({"result": batch, "F": F.shape[:-2]}) != batch:
+        raise ValueError(f"F must have shape ({n}, {n}) or the filter's batch axes {batch} + ({n}, {n}), "
+                         f"got shape {F.shape}")
     T = result.x.shape[0]
     xs, Ps = result.x.copy(), result.P.copy()
     G = np.empty((max(T - 1, 0),) + result.P.shape[1:])

@@ -43,7 +43,7 @@ from scipy import stats
 from scipy.spatial import cKDTree
 
 from . import symbolic as sym
-from ._validate import as_vector, check_covariance
+from ._validate import as_float_array, as_vector, check_covariance, check_finite
 from .ekf import _gain_update, wrap_angle
 from .kalman import Update
 from .scanmatch import icp
@@ -200,6 +200,8 @@ def landmark_count(x) -> int:
 
 def landmark_block(j: int) -> slice:
     """Slice of landmark ``j`` (0-based) in the SLAM state."""
+    if not isinstance(j, (int, np.integer)) or j < 0:
+        raise ValueError(f"j must be a landmark index >= 0 (0-based), got {j!r}")
     return slice(3 + 2 * j, 5 + 2 * j)
 
 
@@ -396,6 +398,20 @@ class SlamResult(NamedTuple):
     nis: list
 
 
+def _check_observations(observations, known: bool) -> None:
+    """Boundary check of :func:`ekf_slam`'s observations: pairs ``(ids (M,), z (M, ..., 2))``, finite."""
+    for k, item in enumerate(observations):
+        name = f"observations[{k}]"
+        if not isinstance(item, (tuple, list)) or len(item) != 2:
+            raise TypeError(f"{name} must be a pair (ids, z), got {type(item).__name__}")
+        ids, z = np.asarray(item[0]), check_finite(as_float_array(item[1], f"{name} z"), f"{name} z")
+        if z.size == 0 and (ids.size == 0 or not known):
+            continue
+        if z.shape[-1] != 2 or (known and (ids.ndim != 1 or z.ndim < 2 or z.shape[0] != ids.size)):
+            raise ValueError(f"{name} must be (ids (M,), z (M, ..., 2)) (range, bearing per landmark), "
+                             f"got ids shape {ids.shape} and z shape {z.shape}")
+
+
 def ekf_slam(x0, P0, odometry, dt: float, observations, R, model: Unicycle, *, known: bool = True,
              gate: float = 0.99, new: float | None = 0.9999) -> SlamResult:
     r"""Run EKF-SLAM: at each step, update with that step's landmark observations, then predict.
@@ -428,6 +444,7 @@ def ekf_slam(x0, P0, odometry, dt: float, observations, R, model: Unicycle, *, k
     T = u.shape[0]
     if len(observations) != T:
         raise ValueError(f"observations must hold one (ids, z) pair per step, {T} steps; got {len(observations)}")
+    _check_observations(observations, known)
     if not known and x.ndim != 1:
         raise ValueError(f"x0 must have shape (3,) when known=False (association runs one state), got {x.shape}")
     slot: dict[int, int] = {}
@@ -548,6 +565,9 @@ def pose_nees(result: SlamResult, truth) -> np.ndarray:
     ``(T, 3)`` (or ``(T, ..., 3)``), heading error wrapped; chi-square with 3 degrees of freedom
     for a consistent filter."""
     truth = as_vector(truth, "truth", 3)
+    if truth.shape[0] != result.pose.shape[0]:
+        raise ValueError(f"truth must have shape ({result.pose.shape[0]}, ..., 3), one pose per step of the run, "
+                         f"got shape {truth.shape}")
     e = result.pose - (truth if truth.ndim == result.pose.ndim else truth.reshape(
         truth.shape[:1] + (1,) * (result.pose.ndim - truth.ndim) + (3,)))
     e[..., 2] = wrap_angle(e[..., 2])

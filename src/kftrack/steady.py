@@ -30,7 +30,7 @@ import scipy.integrate
 import scipy.linalg
 import scipy.signal
 
-from ._validate import as_float_array, as_matrix, check_covariance
+from ._validate import as_float_array, as_matrix, check_covariance, check_finite
 from .discretize import van_loan
 
 __all__ = [
@@ -82,6 +82,15 @@ def _system(A, C, Q, R, G, names=("A", "C")) -> tuple[np.ndarray, ...]:
     return A, C, Q, R, G
 
 
+def _solve_are(solver, a, b, q, r, pair: str, noise: str) -> np.ndarray:
+    """Run a SciPy Riccati solver; its failure becomes a ``ValueError`` that says what to check."""
+    try:
+        return solver(a, b, q, r)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise ValueError(f"the algebraic Riccati equation has no stabilizing solution: ({pair}) must be "
+                         f"detectable and the noise {noise} must excite every unstable mode ({exc})") from exc
+
+
 def continuous_gain(A, C, Q, R, G=None) -> SteadyState:
     r"""Steady-state gain of the continuous (Kalman–Bucy) filter.
 
@@ -101,7 +110,7 @@ def continuous_gain(A, C, Q, R, G=None) -> SteadyState:
     SteadyState(L (n, m), P (n, n)).
     """
     A, C, Q, R, G = _system(A, C, Q, R, G)
-    P = scipy.linalg.solve_continuous_are(A.T, C.T, G @ Q @ G.T, R)
+    P = _solve_are(scipy.linalg.solve_continuous_are, A.T, C.T, G @ Q @ G.T, R, "A, C", "G Q G^T")
     P = 0.5 * (P + P.T)
     return SteadyState(np.linalg.solve(R, C @ P).T, P)
 
@@ -119,7 +128,7 @@ def discrete_gain(F, H, Q, R) -> DiscreteSteadyState:
     R : (m, m) measurement variance, positive definite.
     """
     F, H, Q, R, _ = _system(F, H, Q, R, None, names=("F", "H"))
-    P = scipy.linalg.solve_discrete_are(F.T, H.T, Q, R)
+    P = _solve_are(scipy.linalg.solve_discrete_are, F.T, H.T, Q, R, "F, H", "Q")
     P = 0.5 * (P + P.T)
     S = H @ P @ H.T + R
     K = np.linalg.solve(S, H @ P).T
@@ -227,7 +236,10 @@ def run_steady_filter(F, B, H, D, K, zs, us=None, x0=None) -> np.ndarray:
         us = as_matrix(us, "us", T, p)
     else:
         us = np.zeros((T, 0))
-    x = np.zeros(n) if x0 is None else as_float_array(x0, "x0").reshape(n)
+    x = np.zeros(n) if x0 is None else check_finite(as_float_array(x0, "x0"), "x0")
+    if x.size != n:
+        raise ValueError(f"x0 must have shape ({n},), the state of F, got shape {x.shape}")
+    x = x.reshape(n)
     xs = np.empty((T, n))
     for k in range(T):
         if k:

@@ -37,7 +37,8 @@ import numpy as np
 
 from ._validate import as_vector, check_covariance
 from .ekf import _angles, _call, _residual, wrap_angle
-from .kalman import _LOG_2PI, FilterResult, Update, _batch, _check_sequence, _check_state, _run_sequence, _sym, _T
+from .kalman import (FilterResult, Update, _batch, _check_sequence, _check_state, _innovation_score, _run_sequence,
+                     _sym, _T)
 
 __all__ = ["SigmaPoints", "MerweScaledSigmaPoints", "JulierSigmaPoints", "Transformed",
            "weighted_moments", "unscented_transform", "ukf_predict", "ukf_update", "unscented_kalman_filter"]
@@ -259,11 +260,7 @@ def _ukf_update(x, P, z, h, R, points, x_angles, z_angles) -> Update:
     if x_angles:
         x_post[..., x_angles] = wrap_angle(x_post[..., x_angles])
     P_post = _sym(P - K @ S @ _T(K))
-    Sinv_y = np.linalg.solve(S, y[..., None])[..., 0]
-    nis = np.einsum("...i,...i->...", y, Sinv_y)
-    _, logdet = np.linalg.slogdet(S)
-    loglik = -0.5 * (nis + logdet + y.shape[-1] * _LOG_2PI)
-    return Update(x_post, P_post, y, S, K, nis, loglik)
+    return Update(x_post, P_post, y, S, K, *_innovation_score(y, S))
 
 
 def ukf_predict(x, P, f: Vector, Q, points: Points | None = None,
