@@ -64,6 +64,16 @@ def test_dynamic_model_second_output_is_the_derivative():
     np.testing.assert_allclose(np.gradient(y[:, 0], t)[10:-10], y[10:-10, 1], atol=2e-4)
 
 
+def test_height_model_second_output_is_the_acceleration():
+    """The accelerometer row C A^2 x + C A B u of the height model is the second derivative of h."""
+    m = at.dynamic_model(*at.HEIGHT_PLANT, 2)
+    t = np.linspace(0, 5, 5001)
+    u = np.sin(2 * t)
+    _, y, _ = scipy.signal.lsim((m.A, m.B, m.C, m.D), u, t)
+    d2 = np.gradient(np.gradient(y[:, 0], t), t)
+    np.testing.assert_allclose(d2[10:-10], y[10:-10, 1], atol=1e-3)
+
+
 def test_plant_response_matches_lsim_and_delay():
     t = np.arange(0, 10, 0.01)
     ref = np.where(t >= 1.0, 1.0, 0.0)
@@ -188,3 +198,14 @@ def test_bad_input():
         at.integrated_filter(0.01, np.zeros((5, 3)), np.zeros((5, 3)), Theta=np.zeros((3, 3)))
     with pytest.raises(ValueError, match="delay"):
         at.plant_response(*at.PITCH_PLANT, np.arange(3.0), np.zeros(3), delay=-1)
+    # the pitch plant has relative degree 1: its second derivative needs d(ref)/dt
+    with pytest.raises(ValueError, match=r"^derivative=2 exceeds the relative degree 1"):
+        at.dynamic_model(*at.PITCH_PLANT, 2)
+    with pytest.raises(ValueError, match=r"^derivatives=2 exceeds the relative degree 1"):
+        at.plant_response(*at.PITCH_PLANT, np.arange(3.0), np.zeros(3), 2)
+    with pytest.raises(ValueError, match=r"^t must be uniformly spaced"):
+        at.plant_response(*at.HEIGHT_PLANT, np.array([0.0, 1.0, 3.0]), np.zeros(3))
+    with pytest.raises(ValueError, match=r"^gyro_var must"):
+        at.simulate_imu(np.random.default_rng(0), np.zeros((2, 3)), np.zeros(2), np.zeros(2), gyro_var=-1.0)
+    with pytest.raises(ValueError, match=r"^alt_var must"):
+        at.simulate_height_sensors(np.random.default_rng(0), np.ones(3), np.zeros(3), alt_var=-1e-4)

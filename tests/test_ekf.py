@@ -93,6 +93,37 @@ def test_residual_across_pi():
     assert np.isclose(ekf.residual([0.0, d(179.0)], [0.0, d(-179.0)])[1], d(358.0))
 
 
+def test_state_angle_is_wrapped_in_prediction_and_update():
+    """A heading state with a constant rate, measured directly: wrapping the state and the
+    innovation gives the linear Kalman filter on the unwrapped angles, wrapped afterwards, to
+    round-off, with every predicted and filtered heading in (-pi, pi]."""
+    rng = np.random.default_rng(4)
+    F, H = np.array([[1.0, 1.0], [0.0, 1.0]]), np.array([[1.0, 0.0]])  # state [theta, omega]
+    Q, R = np.diag([1e-4, 1e-5]), np.array([[0.05**2]])
+    x0, P0 = np.array([2.5, 0.3]), np.diag([0.1**2, 0.05**2])
+    f, Fj, h, Hj = linear(F, H)
+    truth, _ = ekf.simulate_additive_gaussian(f, h, x0, P0, Q, R, 40, rng, runs=8)  # theta grows to ~14 rad
+    z_unwrapped = truth[..., :1] + 0.05 * rng.standard_normal(truth.shape[:-1] + (1,))
+    ref = kalman.kalman_filter(z_unwrapped, x0, P0, F, Q, H, R)
+    out = ekf.extended_kalman_filter(ekf.wrap_angle(z_unwrapped), x0, P0, lambda x: ekf.wrap_angle(f(x)), Fj, Q,
+                                     lambda x: ekf.wrap_angle(h(x)), Hj, R, angle_components=[0], state_angles=[0])
+    for name in ("x", "x_prior"):
+        theta = getattr(out, name)[..., 0]
+        assert np.all((theta > -np.pi) & (theta <= np.pi)), name
+        d = ekf.wrap_angle(theta - getattr(ref, name)[..., 0])
+        assert np.max(np.abs(d)) < 1e-12, name
+        np.testing.assert_allclose(getattr(out, name)[..., 1], getattr(ref, name)[..., 1], rtol=0, atol=1e-13)
+    assert np.array_equal(out.P, ref.P) and np.array_equal(out.P_prior, ref.P_prior)
+    np.testing.assert_allclose(out.nis, ref.nis, rtol=1e-9)
+    assert np.abs(ref.x[..., 0]).max() > 3 * np.pi  # the test crosses the cut several times
+    # single steps: the posterior crosses the cut
+    u = ekf.ekf_update([np.pi - 0.01, 0.0], np.diag([0.01, 1.0]), [-np.pi + 0.01], h, Hj, [[1e-4]],
+                       angle_components=[0], state_angles=[0])
+    assert u.x[0] == pytest.approx(np.pi - 0.01 + 0.01 / (0.01 + 1e-4) * 0.02 - 2 * np.pi, abs=1e-12)
+    xp, _ = ekf.ekf_predict([np.pi - 0.1, 0.3], P0, f, Fj, Q, state_angles=[0])
+    assert xp[0] == pytest.approx(np.pi + 0.2 - 2 * np.pi, abs=1e-15)
+
+
 # --- linearized transform -------------------------------------------------------------
 
 
@@ -145,6 +176,10 @@ def test_bad_input_names_the_argument():
         ekf.residual(z, z, angle_components=1)
     with pytest.raises(ValueError, match="F_jac"):
         ekf.ekf_predict(x, P, f, lambda v: np.eye(3), np.eye(2))
+    with pytest.raises(ValueError, match="state_angles"):
+        ekf.ekf_predict(x, P, f, Fj, np.eye(2), state_angles=[2])
+    with pytest.raises(ValueError, match="state_angles"):
+        ekf.extended_kalman_filter(np.zeros((3, 2)), x, P, f, Fj, np.eye(2), h, Hj, np.eye(2), state_angles=[-3])
     with pytest.raises(ValueError, match=r"^Q must"):
         ekf.ekf_predict(x, P, f, Fj, -np.eye(2))
     with pytest.raises(ValueError, match=r"^R must"):

@@ -113,6 +113,11 @@ def test_full_circle_closes_and_euler_does_not():
     assert e1 > 1e-2 and abs(e1 / e2 - 4.0) < 0.1
     with pytest.raises(ValueError, match="method"):
         fr.circle_closure(100.0, 1.0, "rk4")
+    # composing the 628 per-step rotations (not one rotation by 2 pi) also closes, to N eps
+    n, R = 628, 100.0
+    tr = fr.simulate([fr.Segment(2 * np.pi * R, 1 / R)], 2 * np.pi * R / n, n_max=n + 1, stepwise=True)
+    assert len(tr.t) == n + 1 and np.linalg.norm(tr.r[-1] - tr.r[0]) < n * 1e-16 * R * 10
+    np.testing.assert_allclose(tr.frame[-1], tr.frame[0], atol=n * 1e-16 * 10)
 
 
 def test_euler_scheme_as_printed():
@@ -198,3 +203,21 @@ def test_bad_inputs_name_the_argument():
         fr.simulate_euler([fr.Segment(1.0, accel=1.0)], 0.1)
     with pytest.raises(ValueError, match="radii"):
         fr.segments_from_radii([1, 2], [1])
+    with pytest.raises(ValueError, match="v must be non-zero"):
+        fr.curvature_torsion(np.zeros(3), np.ones(3))
+    with pytest.raises(ValueError, match="t must be strictly increasing"):
+        fr.curvature_torsion_from_samples(np.array([0, 1, 1, 2, 3.0]), np.ones((5, 3)))
+    with pytest.raises(ValueError, match="frame0's tangent"):
+        fr.simulate([fr.Segment(10.0)], 1.0, v0=(0, 1, 0), frame0=np.eye(3))
+    with pytest.raises(ValueError, match="frame0 must be a right-handed"):
+        fr.simulate([fr.Segment(10.0)], 1.0, frame0=np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(ValueError, match="n_max"):
+        fr.simulate([fr.Segment(10.0)], 1.0, n_max=0)
+    with pytest.raises(ValueError, match="r0"):
+        fr.simulate([fr.Segment(10.0)], 1.0, r0=np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="ds"):
+        fr.simulate_euler([fr.Segment(1.0)], [0.1, 0.2])
+    with pytest.raises(ValueError, match="ds"):
+        fr.circle_closure(1.0, 0.0)
+    E = fr.initial_frame((0.0, 0.0, 5.0), up=(1.0, 0.0, 0.0))  # vertical start: frame0 needs no `up`
+    assert fr.simulate([fr.Segment(10.0, 0.1)], 1.0, v0=(0.0, 0.0, 5.0), frame0=E).r.shape == (3, 3)

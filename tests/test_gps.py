@@ -139,16 +139,47 @@ def test_random_bytes_never_raise_and_are_counted(lines):
 
 
 @settings(max_examples=200, deadline=None)
-@given(cut=st.integers(1, 60), flip=st.integers(0, 255))
-def test_truncations_and_wrong_checksums_are_counted(cut, flip):
-    line = gps.format_rmc(1000.0, -26.2, -52.7, 1.4, 2.0, talker="GN")
-    truncated = line[: len(line) - 3 - cut % (len(line) - 4)]
-    true_cs = int(line[-2:], 16)
-    wrong = line[:-2] + f"{(true_cs ^ flip) or 1:02X}" if flip else line[:-2] + f"{true_cs ^ 0x5A:02X}"
-    fixes, report = gps.read_nmea_log([line, truncated, wrong])
-    assert report.counts["truncated"] + report.counts["malformed"] == 1
-    assert report.counts["bad_checksum"] == 1
-    assert len(fixes.time) == 1
+@given(st.lists(st.text(max_size=90), max_size=12))
+def test_random_text_never_raises_and_is_counted(lines):
+    fixes, report = gps.read_nmea_log(lines)
+    nonblank = [ln for ln in lines if ln.strip()]
+    ok = sum(gps.parse_sentence(ln)[0] == "ok" for ln in nonblank)
+    assert report.total == len(nonblank) and report.skipped + ok == report.total
+
+
+_CORRUPTION = st.sampled_from(["ok", "truncated", "bad_checksum", "flipped", "non_utf8", "not_a_sentence"])
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(_CORRUPTION, st.integers(0, 10**6), st.binary(max_size=40),
+                          st.characters(min_codepoint=33, max_codepoint=126)), max_size=15))
+def test_every_corruption_is_counted_by_its_reason(items):
+    """A log of valid RMC lines (talkers GP, GN, GL) with some of them truncated anywhere, given a
+    wrong checksum, one body character changed, a non-UTF-8 byte, or no '$': the report counts
+    exactly these, at their line numbers, and every intact line becomes a fix."""
+    lines, expected = [], []
+    for k, (kind, n, noise, char) in enumerate(items):
+        line = gps.format_rmc(1000.0 + k, -26.2 + 1e-5 * (n % 97), -52.7, 1.4, (n % 628) / 100,
+                              talker=("GP", "GN", "GL")[n % 3])
+        if kind == "truncated":
+            line = line[: 1 + n % (len(line) - 1)]          # cut anywhere, keeping the '$'
+        elif kind == "bad_checksum":
+            line = line[:-2] + f"{int(line[-2:], 16) ^ (1 + n % 255):02X}"
+        elif kind == "flipped":                            # one body character changed: XOR differs
+            i = 1 + n % (len(line) - 4)
+            line = line[:i] + (char if char != line[i] else chr(ord(char) % 126 + 1)) + line[i + 1:]
+            kind = "bad_checksum"
+        elif kind == "non_utf8":
+            line = b"\xff" + noise
+        elif kind == "not_a_sentence":
+            line, kind = "x" + line[1:], "malformed"
+        lines.append(line)
+        expected.append(kind)
+    fixes, report = gps.read_nmea_log(lines)
+    bad = [(k + 1, kind) for k, kind in enumerate(expected) if kind != "ok"]
+    assert report.lines == bad
+    assert report.counts == {r: sum(kind == r for _, kind in bad) for r in gps.SKIP_REASONS}
+    assert report.total == len(lines) and len(fixes.time) == expected.count("ok")
 
 
 # --- writer <-> reader round trip -------------------------------------------------------------

@@ -145,6 +145,25 @@ def test_lane_metric_on_true_laps():
     assert d_index.shape == (len(inner),)
 
 
+@given(st.integers(0, 2**32 - 1), st.sampled_from([(), (3,), (2, 2)]), st.integers(1, 40), st.integers(1, 40),
+       st.sampled_from([0.0, 1e3, 7.1e6]))
+def test_nearest_pairing_equals_brute_force(seed, batch, ni, no, offset):
+    """The matrix-product search of the nearest inner point returns the brute-force minimum exactly,
+    with broadcasting of the batch axes and far from the origin (UTM-sized coordinates)."""
+    rng = np.random.default_rng(seed)
+    inner = offset + rng.uniform(-60, 60, batch + (ni, 2))
+    outer = offset + rng.uniform(-60, 60, (no, 2))           # broadcast against inner's batch
+    brute = np.linalg.norm(outer[..., :, None, :] - inner[..., None, :, :], axis=-1).min(-1)
+    got = gf.lane_distances(inner, outer)
+    assert got.shape == batch + (no,)
+    # a different choice between near-ties: centring costs eps * offset per coordinate, so d^2 can be
+    # misjudged by ~ 4 * 120 m * eps * offset and d by that over 2 d; the distance itself is exact
+    tol = 1e-12 + 240 * np.finfo(float).eps * max(offset, 1.0) / np.maximum(brute, 1e-300)
+    assert np.all(np.abs(got - brute) <= tol)
+    chunked = gf._nearest_distances(inner, np.broadcast_to(outer, batch + (no, 2)), max_elements=1)
+    np.testing.assert_array_equal(chunked, got)
+
+
 def test_lane_metric_bad_input():
     with pytest.raises(ValueError, match="pairing"):
         gf.lane_distances(np.zeros((3, 2)), np.zeros((3, 2)), "closest")

@@ -428,9 +428,12 @@ def test_measurement_of_the_wrong_size_is_rejected_naming_it():
 
 
 def test_imm_beats_both_single_model_filters_on_a_turning_track():
-    """Straight 20 s, turn at 0.08 rad/s for 20 s, straight 20 s; 100 runs. Stated margin: the
-    run-by-run RMSE difference to each single-model Kalman filter is positive by more than
-    3 standard errors (paired over the same noise)."""
+    """Straight 20 s, turn at 0.08 rad/s for 20 s, straight 20 s; 100 runs. The IMM's two modes,
+    CV (q = 0.05) and the known turn, each run alone as a Kalman filter, and a CV with q = 5
+    tuned to follow the turn. Stated margin: the IMM's mean per-run RMSE is at least 15 % below
+    each single-model filter's (measured: 69 %, 72 % and 21 % below), and the run-by-run
+    difference (paired over the same noise) is positive by more than 3 standard errors. The
+    standard error of the ratio is below 1 %, so the 15 % margin is not a matter of luck."""
     rng = np.random.default_rng(11)
     x, truth = np.array([0.0, 15.0, 0.0, 0.0]), []
     for w in [0.0] * 20 + [0.08] * 20 + [0.0] * 20:
@@ -440,14 +443,133 @@ def test_imm_beats_both_single_model_filters_on_a_turning_track():
     R = 64.0 * np.eye(2)
     zs = pos[:, None] + 8.0 * rng.normal(size=(60, 100, 2))
     x0, P0 = np.array([0.0, 15.0, 0.0, 0.0]), np.diag([64.0, 25.0, 64.0, 25.0])
-    lo, hi = _cv(0.05), _cv(5.0)
-    bank = imm.IMM([imm.KalmanMode(lo, R), imm.KalmanMode(models.KnownTurn(omega=0.08, q=0.05), R)],
-                   imm.SojournTransition([20.0, 20.0]), [0.5, 0.5])
+    lo, turn, hi = _cv(0.05), models.KnownTurn(omega=0.08, q=0.05), _cv(5.0)
+    bank = imm.IMM([imm.KalmanMode(lo, R), imm.KalmanMode(turn, R)], imm.SojournTransition([20.0, 20.0]), [0.5, 0.5])
 
     def per_run(xe):
         return metrics.rmse(xe[5:, :, [0, 2]], pos[5:, None], axis=0, vector=True)
 
     e_imm = per_run(imm.imm_filter(bank, zs, x0, P0, DT).x)
-    for m in (lo, hi):
-        d = per_run(kalman.kalman_filter(zs, x0, P0, m.F(DT), m.Q(DT), m.H, R).x) - e_imm
+    for m in (lo, turn, hi):
+        e = per_run(kalman.kalman_filter(zs, x0, P0, m.F(DT), m.Q(DT), m.H, R).x)
+        d = e - e_imm
+        assert e_imm.mean() < 0.85 * e.mean(), (m, e_imm.mean(), e.mean())
         assert d.mean() > 3.0 * d.std(ddof=1) / np.sqrt(d.size), (m, d.mean(), d.std(ddof=1))
+
+
+# --------------------------------------------------------------------------------------------
+# UKF modes, and banks that mix KF, EKF and UKF modes
+# --------------------------------------------------------------------------------------------
+def _ct(sigma2=0.05, sigma2_omega=1e-4):
+    return models.CoordinatedTurn(ndim=2, sigma2=sigma2, sigma2_omega=sigma2_omega)
+
+
+def test_one_ukf_mode_equals_the_unscented_kalman_filter_exactly():
+    from kftrack import ukf
+
+    rng = np.random.default_rng(12)
+    ct = _ct()
+    zs = 50.0 + rng.normal(scale=2.0, size=(30, 4, 2)).cumsum(axis=0)
+    zs[9, 1] = np.nan
+    x0, P0 = np.array([50.0, 1.0, 50.0, 1.0, 0.02]), np.diag([25.0, 4.0, 25.0, 4.0, 1e-3])
+    pts = ukf.JulierSigmaPoints(kappa=0.0)
+    res = imm.imm_filter(imm.IMM([imm.UKFMode(ct, R2, points=pts)], np.eye(1), [1.0]), zs, x0, P0, DT)
+    ref = ukf.unscented_kalman_filter(zs, x0, P0, lambda x: ct.f(x, DT), ct.Q(DT),
+                                      lambda x: (ct.H @ x[..., None])[..., 0], R2, pts)
+    np.testing.assert_array_equal(res.x, ref.x)
+    np.testing.assert_array_equal(res.P, ref.P)
+    np.testing.assert_array_equal(res.x_prior, ref.x_prior)
+
+
+def test_ukf_modes_on_linear_models_match_kalman_modes():
+    """The unscented transform is exact for linear f and h, so a bank with UKF modes on linear
+    models is the bank of Kalman modes up to round-off: x, P and mu to 1e-9 over 60 steps."""
+    rng = np.random.default_rng(13)
+    slow, fast = _cv(0.01), _cv(5.0)
+    Pi = np.array([[0.97, 0.03], [0.05, 0.95]])
+    zs = rng.normal(scale=2.0, size=(60, 3, 2)).cumsum(axis=0)
+    x0, P0 = np.zeros(4), 20.0 * np.eye(4)
+    kf_bank = imm.IMM([imm.KalmanMode(slow, R2), imm.KalmanMode(fast, R2)], Pi, [0.5, 0.5])
+    ukf_bank = imm.IMM([imm.KalmanMode(slow, R2), imm.UKFMode(fast, R2)], Pi, [0.5, 0.5])
+    a, b = imm.imm_filter(kf_bank, zs, x0, P0, DT), imm.imm_filter(ukf_bank, zs, x0, P0, DT)
+    np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(b.P, a.P, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(b.mu, a.mu, rtol=0, atol=1e-9)
+    assert a.mu[:, :, 1].min() < 0.2 < 0.8 < a.mu[:, :, 1].max()  # both modes take the lead in turn
+
+
+def test_a_bank_of_kf_ekf_and_ukf_modes_of_different_dimension_runs_batched():
+    """CV (4 states, KF) beside the coordinated turn (5 states) as an EKF and as a UKF mode:
+    unbiased mixing across dimensions, batch rows equal to single runs, mu a probability vector,
+    and the EKF and UKF turn modes (same model, small omega uncertainty) close to each other."""
+    rng = np.random.default_rng(14)
+    x, truth = np.array([0.0, 15.0, 0.0, 0.0, 0.0]), []
+    ct_true = _ct(0.0, 0.0)
+    for w in [0.0] * 15 + [0.08] * 15 + [0.0] * 15:
+        x[4] = w
+        truth.append(x.copy())
+        x = ct_true.f(x, DT)
+    truth = np.array(truth)
+    zs = truth[:, None, [0, 2]] + 2.0 * rng.normal(size=(45, 6, 2))
+    cv, ct = _cv(0.05), _ct()
+    modes = [imm.KalmanMode(cv, R2), imm.EKFMode(ct, R2), imm.UKFMode(ct, R2)]
+    bank = imm.IMM(modes, imm.SojournTransition([30.0, 15.0, 15.0]), [0.8, 0.1, 0.1])
+    x0, P0 = np.array([0.0, 15.0, 0.0, 0.0, 0.0]), np.diag([4.0, 4.0, 4.0, 4.0, 0.01])
+    res = imm.imm_filter(bank, zs, x0, P0, DT)
+    assert res.x.shape == (45, 6, 5) and res.mu.shape == (45, 6, 3)
+    np.testing.assert_allclose(res.mu.sum(-1), 1.0, rtol=0, atol=1e-12)
+    single = imm.imm_filter(bank, zs[:, 2], x0, P0, DT)
+    np.testing.assert_allclose(res.x[:, 2], single.x, rtol=1e-12, atol=1e-10)
+    # step by step from an unbatched prior, the measurements' batch axes carry through; the EKF
+    # and UKF turn modes see the same data and nearly agree; together they take the turn
+    s = bank.initialize(x0, P0)
+    for k in range(45):
+        s = bank.update(s, zs[k])
+        np.testing.assert_allclose(s.x, res.x[k], rtol=1e-12, atol=1e-10)
+        np.testing.assert_allclose(s.P, res.P[k], rtol=1e-12, atol=1e-10)
+        np.testing.assert_allclose(s.xs[2][..., [0, 2]], s.xs[1][..., [0, 2]], atol=0.5)
+        s = bank.predict(s, DT)
+    with pytest.raises(ValueError, match="batch axes"):
+        bank.update(s, np.zeros((4, 2)))  # 4 measurements for a state of 6 runs
+    turning = res.mu[18:30, :, 1:].sum(-1).mean()
+    straight = res.mu[38:, :, 1:].sum(-1).mean()
+    assert turning > 0.8 and straight < turning - 0.3, (turning, straight)
+
+
+def test_ukf_mode_bad_input_names_the_argument():
+    with pytest.raises(TypeError, match="points"):
+        imm.UKFMode(_ct(), R2, points="merwe")
+    with pytest.raises(ValueError, match="state_angles"):
+        imm.UKFMode(_ct(), R2, state_angles=[7])
+    with pytest.raises(ValueError, match="H must have shape"):
+        imm.UKFMode(_ct(), R2, H=np.eye(2))
+
+
+def test_a_fully_missing_row_runs_no_mode_update():
+    """With every run missing a measurement, imm_filter calls no mode's update at all: the step
+    is the prediction alone (no update with an empty or zero measurement)."""
+
+    class Counting(StubMode):
+        calls = 0
+
+        def update(self, x, P, z):
+            Counting.calls += 1
+            return super().update(x, P, z)
+
+    est = imm.IMM([Counting(2, -1.0), Counting(2, -3.0)], [[0.9, 0.1], [0.2, 0.8]], [0.5, 0.5])
+    zs = np.zeros((6, 3, 2))
+    zs[2:4] = np.nan
+    res = imm.imm_filter(est, zs, np.zeros(2), np.eye(2), DT)
+    assert Counting.calls == 2 * 4  # two modes, four steps with a measurement
+    Pi = est.transition(DT)
+    np.testing.assert_allclose(res.mu[3], res.mu[1] @ Pi @ Pi, rtol=1e-14)
+
+
+def test_progress_bar_does_not_change_the_result():
+    rng = np.random.default_rng(15)
+    zs = rng.normal(size=(20, 3, 2))
+    a = imm.imm_filter(imm.IMM(_two(), np.array([[0.9, 0.1], [0.1, 0.9]]), [0.5, 0.5]), zs, np.zeros(4), np.eye(4), DT)
+    b = imm.imm_filter(imm.IMM(_two(), np.array([[0.9, 0.1], [0.1, 0.9]]), [0.5, 0.5]), zs, np.zeros(4), np.eye(4), DT,
+                       progress=True)
+    for u, v in zip(a, b):
+        np.testing.assert_array_equal(u, v)

@@ -252,3 +252,36 @@ def test_kalman_filter_bad_input():
         kalman.rts_smoother(res, np.broadcast_to(F, (3, 4, 4)))  # more batch axes than the filter had
     with pytest.raises(ValueError, match="F must have shape"):
         kalman.rts_smoother(res, np.eye(3))
+
+
+def test_bad_input_says_where_the_expected_sizes_come_from():
+    x, P, H, R = np.zeros(2), np.eye(2), np.array([[1.0, 0.0]]), np.eye(1)
+    # a measurement of the wrong size: H is blamed, and the message says m comes from z
+    with pytest.raises(ValueError, match=r"H must have shape \(\.\.\., 2, 2\), got shape \(1, 2\) \(m = 2 from z, n = 2 from x\)"):
+        kalman.update(x, P, np.zeros(2), H, R)
+    with pytest.raises(ValueError, match=r"R must have shape \(\.\.\., 1, 1\), got shape \(2, 2\) \(m = 1 from z\)"):
+        kalman.update(x, P, np.zeros(1), H, np.eye(2))
+    with pytest.raises(ValueError, match=r"F must have shape \(\.\.\., 2, 2\), got shape \(3, 3\) \(n = 2 from x\)"):
+        kalman.predict(x, P, np.eye(3), np.eye(2))
+    with pytest.raises(ValueError, match=r"batch axes do not broadcast: x \(3,\), P \(4,\).*must be equal or 1"):
+        kalman.update(np.zeros((3, 2)), np.broadcast_to(P, (4, 2, 2)), np.zeros(1), H, R)
+
+
+def test_kalman_filter_names_x0_and_P0():
+    F, Q, H, R = cv2d()
+    zs = np.zeros((3, 2))
+    with pytest.raises(ValueError, match="^x0 must be finite"):
+        kalman.kalman_filter(zs, np.array([np.nan, 0, 0, 0]), np.eye(4), F, Q, H, R)
+    with pytest.raises(ValueError, match=r"^P0 must have shape \(\.\.\., 4, 4\), got shape \(2, 2\) \(n = 4 from x0\)"):
+        kalman.kalman_filter(zs, np.zeros(4), np.eye(2), F, Q, H, R)
+    with pytest.raises(ValueError, match="^P0 must be positive semi-definite"):
+        kalman.kalman_filter(zs, np.zeros(4), -np.eye(4), F, Q, H, R)
+    with pytest.raises(ValueError, match=r"^R must have shape \(\.\.\., 1, 1\), got shape \(2, 2\) \(m = 1 from zs\)"):
+        kalman.kalman_filter(np.zeros((3, 1)), np.zeros(4), np.eye(4), F, Q, H, R)
+
+
+@pytest.mark.parametrize("bad", [None, 1j * np.eye(2), [[1.0, 0.0], [0.0, 1.0 + 1e-9j]]])
+def test_none_and_complex_input_is_refused_not_coerced(bad):
+    """NumPy would turn None into NaN and drop an imaginary part with only a warning."""
+    with pytest.raises(TypeError, match="^F must be an array of real numbers, got (None|complex)"):
+        kalman.predict(np.zeros(2), np.eye(2), bad, np.eye(2))

@@ -81,3 +81,13 @@ def test_nees_bad_input():
         metrics.nees(np.zeros(2), np.zeros(2), np.diag([1.0, 0.0]))
     with pytest.raises(ValueError, match="dim must be a positive integer"):
         metrics.anees(np.ones(3), 0)
+
+
+def test_anees_and_rmse_refuse_values_that_cannot_be_right():
+    with pytest.raises(ValueError, match="nees_values must be non-negative and finite"):
+        metrics.anees(np.array([1.0, -0.5]), 1)
+    with pytest.raises(ValueError, match="nees_values must be non-negative and finite"):
+        metrics.anees(np.array([1.0, np.inf]), 1)
+    with pytest.raises(TypeError, match="estimate must be an array of real numbers"):
+        metrics.rmse(np.array([1.0 + 1j]), np.zeros(1))
+    assert np.isnan(metrics.anees(np.array([1.0, np.nan]), 1))  # a missing value stays visible

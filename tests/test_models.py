@@ -1,7 +1,9 @@
-"""Tests of kftrack.models: F and Q against closed forms, Van Loan (scipy.linalg.expm) and
-filterpy (test-only oracle); the singular points (omega = 0, Singer alpha*T -> 0) exactly and
+"""Tests of kftrack.models: F and Q against closed forms written out again (60-digit mpmath),
+Van Loan (scipy.linalg.expm), filterpy and Stone Soup (test-only oracles, also at the singular
+points where Stone Soup fails); the singular points (omega = 0, Singer alpha*T -> 0) exactly and
 across the series switch; Jacobians against 8th-order central differences; negative dt;
-batch broadcasting; bad input; symmetry, PSD and rank of every Q (hypothesis)."""
+batch broadcasting; bad input; symmetry, PSD and rank of every Q (hypothesis); code generated
+once and cached."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,6 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kftrack import models as M
+
+import closed_forms
 
 EPS = np.finfo(float).eps
 RNG = np.random.default_rng(20261122)
@@ -88,7 +92,8 @@ def test_singer_small_alpha_tends_to_constant_acceleration():
     # Stone Soup's table (T = 5, q = 1): correct to 4 digits at alpha = 0.1 ...
     s = M.Singer(tau=10.0, q=1.0)
     assert round(s.F(5.0)[0, 2], 2) == 10.65 and round(s.Q(5.0)[0, 0], 1) == 119.6
-    # ... and where it returns 14 and 39412 (alpha = 1e-8, 1e-9) we tend to 12.5 and 156.25:
+    # ... and where it cancels (alpha = 1e-8, 1e-9; test_stone_soup_at_the_singular_points_where_it_fails)
+    # we tend to 12.5 and 156.25:
     for al in (1e-6, 1e-8, 1e-9, 1e-12):
         s = M.Singer(tau=1 / al, q=1.0)
         # first-order terms of the series: F02 = T^2/2 - alpha T^3/6, Q00 = T^5/20 - alpha T^6/36
@@ -207,6 +212,7 @@ def test_ct_across_switch_and_inverse_and_speed():
         for key in ("f", "J"):
             branches_agree(M._coordinated_turn(2)[key], (*x, dt), 16 * EPS)
             branches_agree(M._coordinated_turn(3)[key], (*x[:4], 5.0, -2.0, x[4], dt), 16 * EPS)
+            branches_agree(M._polar_turn()[key], (1.0, 2.0, 50.0, -0.9, x[4], dt), 16 * EPS)
     x = np.array([1.0, 30.0, 2.0, -40.0, 0.0])
     x[4] = 0.3
     assert np.allclose(CT2.f(CT2.f(x, 2.0), -2.0), x, rtol=0, atol=1e-12 * 50)
@@ -277,8 +283,15 @@ def test_broadcasting_over_batches():
     (lambda: M.ConstantVelocity(q=1.0).F(np.inf), "dt"),
     (lambda: M.ConstantVelocity(q=1.0).f(np.zeros(3), 1.0), r"x must have shape \(\.\.\., 2\)"),
     (lambda: CT2.jacobian(np.zeros(4), 1.0), "x must have shape"),
+    (lambda: M.Singer(tau=[1.0, 2.0], q=1.0), "tau must be a scalar"),
+    (lambda: CT2.f(np.zeros((3, 5)), np.ones(4)), "dt must be a scalar or broadcast with the batch axes of x"),
+    (lambda: M.CoordinatedTurnPolar().jacobian(np.zeros((3, 5)), np.ones(2)), "dt must be a scalar or broadcast"),
+    (lambda: M.ConstantVelocity(ndim=2, q=1.0).f(np.zeros((3, 4)), np.ones(4)), "dt must be a scalar or broadcast"),
+    (lambda: M.KnownTurn(0.1, q=1.0).jacobian(np.zeros((3, 4)), np.ones(2)), "dt must be a scalar or broadcast"),
     (lambda: M.van_loan(np.zeros((2, 3)), np.zeros((2, 1)), np.eye(1), 1.0), "A must"),
     (lambda: M.van_loan(A_CV, np.zeros((2, 1)), np.eye(2), 1.0), "Qc must"),
+    (lambda: M.van_loan(A_CV, np.zeros((2, 1)), np.eye(1), -1.0), "dt must be >= 0"),
+    (lambda: M.CoordinatedTurn(sigma2=1.0, sigma2_omega=1.0).Q(-0.5), "dt must be >= 0"),
 ])
 def test_bad_input_names_the_argument(make, match):
     with pytest.raises((ValueError, TypeError), match=match):
@@ -292,20 +305,31 @@ def _models(w, tau):
             CT2, CT3]
 
 
+#: rank of each Q in _models: continuous white noise is full rank, direct-discrete noise has
+#: rank = number of noise inputs (one per axis, plus omega for the coordinated turn)
+_RANKS = [4, 3, 3, 2, 6, 4, 3, 3, 7]
+
+
+def numerical_rank(Q) -> int:
+    """Rank of a covariance from its correlation matrix D^-1/2 Q D^-1/2, which removes the
+    powers of dt that make Q itself ill-conditioned. Its eigenvalues are either round-off
+    (|e| < 1e-14 here) or at least 0.0095 (the constant-acceleration correlation matrix,
+    independent of dt); 1e-8 separates the two by six orders of magnitude either way."""
+    d = np.sqrt(np.diag(Q))
+    return int(np.sum(np.linalg.eigvalsh(Q / np.outer(d, d)) > 1e-8))
+
+
 @settings(max_examples=60, deadline=None)
 @given(dt=st.floats(1e-3, 30.0), w=st.floats(-2.0, 2.0), tau=st.floats(0.05, 1e6))
 def test_q_symmetric_psd_with_the_right_rank(dt, w, tau):
-    for m in _models(w, tau):
+    for m, rank in zip(_models(w, tau), _RANKS):
         Q = m.Q(dt)
         scale = np.max(np.abs(Q))
         assert np.array_equal(Q, Q.T) or rel(Q, Q.T) < 4 * EPS
-        eig = np.linalg.eigvalsh(Q)
-        assert eig[0] >= -1e3 * EPS * scale
-    # ranks: direct-discrete Q has rank = number of noise inputs, continuous is full rank
-    if dt > 0.05:
-        assert np.linalg.matrix_rank(M.ConstantVelocity(ndim=3, sigma2=0.7).Q(dt)) == 3
-        assert np.linalg.matrix_rank(M.ConstantAcceleration(ndim=2, sigma2=0.4).Q(dt)) == 2
-        assert np.linalg.matrix_rank(M.ConstantVelocity(ndim=2, q=1.3).Q(dt)) == 4
+        assert np.linalg.eigvalsh(Q)[0] >= -1e3 * EPS * scale
+        d = np.sqrt(np.diag(Q))  # PSD up to the round-off of a unit-diagonal eigenproblem
+        assert np.linalg.eigvalsh(Q / np.outer(d, d))[0] >= -16 * m.n * EPS
+        assert numerical_rank(Q) == rank, m
 
 
 # ------------------------------------------------------------------------------------------
@@ -338,3 +362,165 @@ def test_against_stone_soup():
             assert rel(M.KnownTurn(omega=w, q=q).F(dt), kt.matrix(time_interval=ti)) < 100 * EPS
             # Stone Soup's Q is the axis-decoupled CV approximation: ours is its omega -> 0 limit
             assert rel(M.ConstantVelocity(ndim=2, q=q).Q(ad), kt.covar(time_interval=ti)) < 10 * EPS
+
+
+def test_stone_soup_at_the_singular_points_where_it_fails():
+    """Stone Soup (test-only oracle) at the points stonesoup_models.md 1.10 lists as broken:
+    the tests call it, show the defect, and show ours is right there (against Van Loan, the
+    series limits and the exact Jacobian column)."""
+    import datetime
+    import warnings
+
+    from stonesoup.models.transition import linear as ss
+    from stonesoup.models.transition.nonlinear import ConstantTurn
+    from stonesoup.types.state import State
+
+    one, five = datetime.timedelta(seconds=1), datetime.timedelta(seconds=5)
+    # KnownTurnRate at omega = 0 divides 0 by 0; ours is constant velocity exactly
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        F_ss = ss.KnownTurnRate(turn_noise_diff_coeffs=[1.0, 1.0], turn_rate=0.0).matrix(time_interval=one)
+    assert np.isnan(F_ss).any()
+    assert np.array_equal(M.KnownTurn(omega=0.0, q=1.0).F(1.0), M.ConstantVelocity(ndim=2, q=1.0).F(1.0))
+    # Singer at alpha T = 5e-8 and 5e-9: Stone Soup's closed form and quadrature cancel; ours
+    # agrees with Van Loan (scipy.linalg.expm, no cancellation) to round-off
+    for al in (1e-8, 1e-9):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sg = ss.Singer(noise_diff_coeff=1.0, damping_coeff=al)
+            F_ss, Q_ss = sg.matrix(time_interval=five), sg.covar(time_interval=five)
+        A = np.array([[0, 1, 0], [0, 0, 1], [0, 0, -al]])
+        F_vl, Q_vl = M.van_loan(A, np.array([[0.0], [0.0], [1.0]]), [[1.0]], 5.0)
+        ours = M.Singer(tau=1 / al, q=1.0)
+        assert rel(ours.F(5.0), F_vl) < 16 * EPS and rel(ours.Q(5.0), Q_vl) < 64 * EPS
+        assert abs(F_ss[0, 2] - 12.5) > 0.4 and abs(Q_ss[0, 0] - 156.25) > 40  # Stone Soup: 12 or 128, 200 or 31953
+    # ConstantTurn's finite-difference Jacobian at omega = 0 and 1e-7: the position rows of the
+    # omega-column are 0, then 10 % short; the exact column is [-T^2 vy/2, -T vy, T^2 vx/2, T vx]
+    ct_ss = ConstantTurn(linear_noise_coeffs=np.array([1.0, 1.0]), turn_noise_coeff=1e-4)
+    exact = np.array([-25.0, -50.0, 50.0, 100.0])
+    for w in (0.0, 1e-7):
+        x = np.array([0.0, 100.0, 0.0, 50.0, w])
+        col_ss = ct_ss.jacobian(State(x[:, None]), time_interval=one)[:4, 4]
+        assert np.max(np.abs(col_ss - exact)) > 2.0
+        # ours: exact at 0; at 1e-7 equal to seed 000's eqs. 59-62 evaluated in 60 digits
+        col = CT2.jacobian(x, 1.0)[:4, 4]
+        if w == 0.0:
+            assert np.array_equal(col, exact)
+        else:
+            assert rel(col, _ct_omega_column(x, 1.0)) < 4 * EPS
+
+
+def _ct_omega_column(x, dt):
+    """d f / d omega of the coordinated turn (seed 000, eqs. 59-62) in 60-digit arithmetic."""
+    import mpmath
+
+    with mpmath.workdps(60):
+        vx, vy, w, T = (mpmath.mpf(float(v)) for v in (x[1], x[3], x[4], dt))
+        sn, c = mpmath.sin(w * T), mpmath.cos(w * T)
+        col = [c * T / w * vx - sn / w**2 * vx - sn * T / w * vy - (c - 1) / w**2 * vy,
+               -sn * T * vx - c * T * vy,
+               sn * T / w * vx - (1 - c) / w**2 * vx + c * T / w * vy - sn / w**2 * vy,
+               c * T * vx - sn * T * vy]
+        return np.array([float(v) for v in col])
+
+
+def test_ct_against_stone_soup_constant_turn():
+    """Stone Soup's ConstantTurn (state [x, vx, y, vy, omega]) as an oracle for f and the
+    continuous-noise Q, at random states away from omega = 0."""
+    import datetime
+
+    from stonesoup.models.transition.nonlinear import ConstantTurn
+    from stonesoup.types.state import State
+
+    rng = np.random.default_rng(11)
+    ct_ss = ConstantTurn(linear_noise_coeffs=np.array([0.7, 0.7]), turn_noise_coeff=0.02)
+    ours = M.CoordinatedTurn(q=0.7, q_omega=0.02)
+    for dt in np.round(rng.uniform(0.05, 8, 5), 6):
+        ti = datetime.timedelta(seconds=float(dt))
+        x = rng.normal(size=5) * [100, 30, 100, 30, 0.5]
+        f_ss = np.asarray(ct_ss.function(State(x[:, None]), time_interval=ti), dtype=float)[:, 0]
+        # the closed form cancels as eps/(omega T)^2 relative where |omega T| is small
+        tol = 64 * EPS * max(1.0, 1 / (x[4] * dt) ** 2)
+        assert rel(ours.f(x, dt), f_ss) < tol
+        assert rel(ours.Q(dt), ct_ss.covar(time_interval=ti)) < 10 * EPS
+
+
+# ------------------------------------------------------------------------------------------
+# Singer and the known-rate turn against their closed forms written out again, evaluated
+# in 60-digit arithmetic (mpmath), so the reference has no cancellation of its own
+# ------------------------------------------------------------------------------------------
+def _singer_closed(T, a, mp):
+    F, Q = closed_forms.singer(T, a, mp.exp)
+    return F, [[Q[min(i, j), max(i, j)] for j in range(3)] for i in range(3)]
+
+
+def _turn_closed(T, w, mp):
+    return closed_forms.known_turn(T, w, mp.sin, mp.cos)
+
+
+def _mp_eval(fn, T, p):
+    import mpmath
+
+    with mpmath.workdps(60):
+        F, Q = fn(mpmath.mpf(float(T)), mpmath.mpf(float(p)), mpmath)
+        return (np.array([[float(v) for v in row] for row in F]),
+                np.array([[float(v) for v in row] for row in Q]))
+
+
+def test_singer_and_known_turn_against_written_out_closed_forms():
+    # Random points on both sides of the series switch, negative dt for F. Ours is the series
+    # (round-off) below the switch and the closed form above it, which cancels by at most
+    # ~20 eps (Singer's Q00 at |alpha T| = 1) and ~4 eps (the turn at |omega T| = 0.5).
+    rng = np.random.default_rng(31)
+    for _ in range(12):
+        dt, q = rng.uniform(0.05, 20) * rng.choice([1, -1]), rng.uniform(0.1, 10)
+        al = 10 ** rng.uniform(-6, 1.5) / abs(dt)  # alpha |T| from 1e-6 to 30
+        F_ref, Q_ref = _mp_eval(_singer_closed, dt, al)
+        s = M.Singer(tau=1 / al, ndim=2, q=q)
+        assert rel(s.F(dt)[:3, :3], F_ref) < 64 * EPS and np.array_equal(s.F(dt)[3:, 3:], s.F(dt)[:3, :3])
+        if dt > 0:
+            assert rel(s.Q(dt)[3:, 3:], q * Q_ref) < 64 * EPS
+        w = 10 ** rng.uniform(-6, 1.3) / abs(dt) * rng.choice([1, -1])  # |omega T| from 1e-6 to 20
+        F_ref, Q_ref = _mp_eval(_turn_closed, dt, w)
+        kt = M.KnownTurn(omega=w, q=q)
+        assert rel(kt.F(dt), F_ref) < 32 * EPS
+        if dt > 0:
+            assert rel(kt.Q(dt), q * Q_ref) < 32 * EPS
+            G = np.array([[dt**2 / 2, 0], [dt, 0], [0, dt**2 / 2], [0, dt]])  # direct discrete
+            assert rel(M.KnownTurn(omega=w, sigma2=q).Q(dt), q * G @ G.T) < 4 * EPS
+
+
+def test_generated_once_and_cached(monkeypatch):
+    """After the first use, no model call derives or generates code again: every SymPy entry
+    point is replaced by a function that fails, and all models still evaluate."""
+    import sympy
+
+    from kftrack import symbolic as sym
+
+    def calls():
+        x5 = np.array([1.0, 20.0, 2.0, -10.0, 0.1])
+        for m in _models(0.1, 5.0) + [M.Singer(tau=np.inf, q=1.0), M.KnownTurn(omega=0.0, q=1.0)]:
+            m.F(1.0) if not isinstance(m, M.CoordinatedTurn) else m.F(1.0, np.zeros(m.n))
+            m.Q(1.0)
+            m.f(np.ones(m.n), 1.0)
+            m.jacobian(np.ones(m.n), 1.0)
+        pol = M.CoordinatedTurnPolar()
+        pol.f(x5, 1.0), pol.jacobian(x5, 1.0)
+
+    calls()  # warm up: derive and generate once
+    before = {f.__name__: f.cache_info().misses for f in (M._kinematic, M._singer, M._known_turn,
+                                                           M._coordinated_turn, M._polar_turn)}
+
+    def fail(*args, **kwargs):
+        raise AssertionError("re-derived or re-generated at call time")
+
+    for name in ("transition_matrix", "continuous_white_noise", "discrete_white_noise", "jacobian",
+                 "series_branch", "coordinated_turn_transition", "polar_turn_transition"):
+        monkeypatch.setattr(sym, name, fail)
+    monkeypatch.setattr(sympy, "lambdify", fail)
+    monkeypatch.setattr(sym.sp, "lambdify", fail)
+    monkeypatch.setattr(sym.GeneratedFunction, "__init__", fail)
+    calls()
+    after = {f.__name__: f.cache_info().misses for f in (M._kinematic, M._singer, M._known_turn,
+                                                          M._coordinated_turn, M._polar_turn)}
+    assert after == before

@@ -152,13 +152,51 @@ def test_exact_transition_against_ode_and_group_law():
     np.testing.assert_allclose(M.Turn3DAngles.f_exact(still, 3.0), expect, rtol=1e-14)
 
 
-@pytest.mark.parametrize("method", ["paper", "nonsingular", "taylor_exact"])
-def test_taylor_steps_are_second_order(method):
-    x = _state(0.05, 0.02)
+def _local_errors(method, x, T):
     m = M.Turn3DAngles(form="paper" if method == "paper" else "nonsingular")
     step = m.f_taylor_exact if method == "taylor_exact" else m.f
-    errs = [np.linalg.norm((step(x, T) - M.Turn3DAngles.f_exact(x, T))[[0, 2, 4]]) for T in (0.4, 0.2)]
-    assert 7.0 < errs[0] / errs[1] < 9.0  # local error O(T^3)
+    d = step(x, T) - M.Turn3DAngles.f_exact(x, T)
+    return np.linalg.norm(d[[0, 2, 4]]), np.linalg.norm(d[[1, 3, 5]])
+
+
+# Local (one-step) error orders against the exact transition. The position rows of every
+# variant are an exact second-order Taylor step (x'' = v' = A v holds), so their error is
+# O(T^3). The velocity rows of F = I + TA + T^2 A^2/2 drop the dA/dt v part of the second
+# derivative: O(T^2) as soon as both rates are non-zero, O(T^3) when omega_gamma = 0 (then A
+# does not depend on chi); the true Taylor-2 step x + Tg + T^2/2 J_g g is O(T^3) throughout.
+@pytest.mark.parametrize("method,wg,p_vel", [("paper", 0.02, 2), ("nonsingular", 0.02, 2), ("taylor_exact", 0.02, 3),
+                                             ("paper", 0.0, 3), ("nonsingular", 0.0, 3), ("taylor_exact", 0.0, 3)])
+def test_taylor_steps_local_order(method, wg, p_vel):
+    x = _state(0.05, wg)
+    (p1, v1), (p2, v2) = (_local_errors(method, x, T) for T in (0.02, 0.01))
+    # e(T)/e(T/2) = 2^p (1 + O(T)); at T = 0.02 s the O(T) term is below 1 %
+    assert p1 / p2 == pytest.approx(8.0, rel=0.01)
+    assert v1 / v2 == pytest.approx(2.0**p_vel, rel=0.01)
+
+
+def test_nonsingular_velocity_error_leading_term():
+    # -T^2/2 (dA/dt) v with the non-singular A: dA/dt v = omega_chi omega_gamma v_h [sin chi, -cos chi, 0]
+    x = _state(0.05, 0.02)
+    _, ev = _local_errors("nonsingular", x, 0.01)
+    assert ev / 0.01**2 == pytest.approx(0.05 * 0.02 * x[5] / 2, rel=0.01)  # next term O(T): 0.7 % here
+
+
+def test_turn3d_one_step_error_on_a_helix_is_the_missing_jerk():
+    # true jerk = -omega^2 v + v^3 kappa tau b; Turn3D drops the last term m, so one step errs by
+    # m T^3/6 in position and m T^2/2 in velocity. The next term is m' T^4/24 (T^3/6) with
+    # |m'| = v |tau| |m| (b turns at the rate v tau): relative v|tau|T/4 (/3); we allow twice that.
+    kap, tau, v, T = 1 / 800, 1 / 1500, 100.0, 1.0
+    errs = []
+    for dt in (T, T / 2):
+        tr = fr.simulate([fr.Segment(3000.0, kap, tau)], dt, v0=(v, 0, 0), n_max=2)
+        x = np.stack([tr.r, tr.v, tr.a], -1).reshape(-1, 9)
+        e = x[1] - M.Turn3D(omega=float(fr.turn_rate(tr.v[0], tr.a[0]))).f(x[0], dt)  # truth - prediction
+        lead = v**3 * kap * tau * tr.frame[0, 2]
+        bound = v * abs(tau) * dt / 2
+        np.testing.assert_allclose(e[[0, 3, 6]], lead * dt**3 / 6, rtol=0, atol=bound * np.linalg.norm(lead) * dt**3 / 6)
+        np.testing.assert_allclose(e[[1, 4, 7]], lead * dt**2 / 2, rtol=0, atol=bound * np.linalg.norm(lead) * dt**2 / 2)
+        errs.append(np.linalg.norm(e[[0, 3, 6]]))
+    assert errs[0] / errs[1] == pytest.approx(8.0, rel=0.01)
 
 
 def test_seed001_one_step_claims_c14_c15():

@@ -80,6 +80,18 @@ def test_round_trip_polar_cartesian(ndim):
     # linearized covariance: J R J^T, range variance along the line of sight
     u = (conv.p - radar.sensor) / np.linalg.norm(conv.p - radar.sensor, axis=-1, keepdims=True)
     assert np.allclose(np.einsum("ki,kij,kj->k", u, conv.C, u), 1.0, rtol=1e-9)
+    # the whole matrix in closed form: sigma_r along the line of sight, r cos(phi) sigma_theta
+    # along the azimuth direction and r sigma_phi along the elevation direction
+    z = radar.h(x)
+    r, th = z[:, 0], z[:, 1]
+    ph = z[:, 2] if ndim == 3 else np.zeros_like(r)
+    e_th = np.stack([-np.sin(th), np.cos(th), np.zeros_like(th)], -1)[:, :ndim]
+    dirs = [(u, radar.sigmas[0]), (e_th, r * np.cos(ph) * radar.sigmas[1])]
+    if ndim == 3:
+        e_ph = np.stack([-np.sin(ph) * np.cos(th), -np.sin(ph) * np.sin(th), np.cos(ph)], -1)
+        dirs.append((e_ph, r * radar.sigmas[2]))
+    C = sum(np.broadcast_to(s, r.shape)[:, None, None] ** 2 * e[:, :, None] * e[:, None, :] for e, s in dirs)
+    assert np.allclose(conv.C, C, rtol=1e-10, atol=1e-10 * np.max(np.abs(C)))
 
 
 def _gauss_hermite_conditioned(z, sig, ndim, order=40):

@@ -89,6 +89,13 @@ def test_helix_curvature_torsion_and_climb():
     np.testing.assert_allclose(h.truth[:, 5], 100.0 * np.sin(g), rtol=1e-12)  # constant climb rate
     w_vertical = np.diff(np.unwrap(np.arctan2(h.truth[turn, 3], h.truth[turn, 1])))
     np.testing.assert_allclose(w_vertical, 0.05, rtol=1e-9)
+    # a negative rate: the mirror image, clockwise from above, a left-handed helix (tau < 0)
+    m = sc.climbing_helix(np.random.default_rng(0), rate=-0.05)
+    k_m, tau_m = fr.curvature_torsion(m.track.v[turn], m.track.a[turn], m.track.jerk[turn])
+    np.testing.assert_allclose(k_m, k, rtol=1e-12)
+    np.testing.assert_allclose(tau_m, -tau, rtol=1e-10)
+    np.testing.assert_allclose(m.truth[:, [0, 1, 4, 5]], h.truth[:, [0, 1, 4, 5]], atol=1e-6)
+    np.testing.assert_allclose(m.truth[:, [2, 3]], -h.truth[:, [2, 3]], atol=1e-6)
 
 
 def test_manoeuvre_speed_profile():
@@ -107,3 +114,12 @@ def test_bad_inputs():
         sc.tilted_zigzag(np.random.RandomState(0))
     with pytest.raises(ValueError, match="sigma"):
         sc.climbing_helix(rng, sigma=-1.0)
+    for kw in ("speed", "dt", "omega", "turn_deg", "leg"):
+        with pytest.raises(ValueError, match=f"^{kw} must be > 0"):
+            sc.tilted_zigzag(rng, **{kw: 0.0})
+    with pytest.raises(ValueError, match="^rate must be non-zero"):
+        sc.climbing_helix(rng, rate=0.0)
+    with pytest.raises(ValueError, match="climb_deg"):
+        sc.climbing_helix(rng, climb_deg=90.0)
+    with pytest.raises(ValueError, match="^speed must be > 0"):
+        sc.climbing_helix(rng, speed=-100.0)

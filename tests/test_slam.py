@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from kftrack import ekf, slam
@@ -91,6 +93,44 @@ def test_add_landmark_grows_state_and_covariance_consistently():
     assert np.allclose(Pa, J @ joint @ J.T, atol=1e-14)
     # cross-covariance with an earlier landmark is Gr P_r,l (non-zero: the map is correlated)
     assert np.allclose(Pa[9:, 3:5], Gr @ P[:3, 3:5]) and np.abs(Pa[9:, 3:5]).max() > 1e-3
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 4), st.floats(0.2, 20.0), st.floats(-np.pi, np.pi))
+def test_add_landmark_keeps_covariance_symmetric_psd(seed, N, r, phi):
+    # for any prior and any first sighting: the grown covariance is symmetric positive
+    # semi-definite (it is J joint J^T), the old block is untouched, and the new block is at least
+    # the measurement part Gz R Gz^T (the robot's uncertainty can only add to it)
+    rng = np.random.default_rng(seed)
+    x, P = _state(rng, N)
+    R = np.diag([0.1**2, np.deg2rad(2) ** 2])
+    xa, Pa = slam.add_landmark(x, P, [r, phi], R)
+    n = 3 + 2 * N
+    assert xa.shape == (n + 2,) and Pa.shape == (n + 2, n + 2)
+    scale = np.abs(Pa).max()
+    assert np.abs(Pa - Pa.T).max() <= 1e-15 * scale and np.array_equal(Pa[:n, :n], P)  # symmetric to round-off
+    assert np.linalg.eigvalsh(Pa).min() > -1e-12 * scale
+    _, Gz = slam.inverse_jacobians(x[:3], [r, phi])
+    assert np.linalg.eigvalsh(Pa[n:, n:] - Gz @ R @ Gz.T).min() > -1e-12 * scale
+
+
+def test_ekf_slam_state_grows_with_each_new_landmark():
+    # along a seeded loop: after step k the state holds exactly the landmarks seen so far, in the
+    # order of their first sighting; every covariance is symmetric positive definite, and each new
+    # landmark is correlated with the robot and with the landmarks mapped before it
+    lm, s, res = _loop(15)
+    seen: list[int] = []
+    for k, (ids, _) in enumerate(s.observations):
+        new = [int(i) for i in ids if i not in seen]
+        seen += new
+        x, P = res.x[k], res.P[k]
+        assert res.ids[:len(seen)] == seen and x.shape == (3 + 2 * len(seen),) and P.shape == (x.size, x.size)
+        assert np.abs(P - P.T).max() <= 1e-15 * np.abs(P).max() and np.linalg.eigvalsh(P).min() > 0
+        assert np.array_equal(res.pose[k], x[:3]) and np.array_equal(res.pose_P[k], P[:3, :3])
+        for lid in new:
+            b = slam.landmark_block(seen.index(lid))
+            assert np.abs(P[b, :3]).max() > 0 and (b.start == 3 or np.abs(P[b, 3:b.start]).max() > 0)
+    assert sorted(seen) == list(range(len(lm)))
 
 
 def test_predict_and_update_equal_the_dense_equations():
@@ -262,9 +302,30 @@ def test_icp_localization_beats_dead_reckoning():
     (lambda: slam.pose_nees(slam.ekf_slam(np.zeros(3), np.eye(3), np.zeros((2, 2)), 0.1, [([], np.zeros((0, 2)))] * 2,
                                           np.eye(2), slam.Unicycle(1, 1)), np.zeros((3, 3))), r"truth must have shape \(2,"),
     (lambda: sc.slam_loop(np.random.default_rng(0), np.ones((3, 3))), "landmarks"),
+    (lambda: sc.slam_loop(np.random.default_rng(0), np.ones((3, 2)), sigma_bearing=-0.1), "sigma_bearing"),
+    (lambda: sc.slam_loop(np.random.default_rng(0), np.ones((3, 2)), max_range=0.0), "max_range"),
+    (lambda: slam.slam_predict(np.zeros(3), np.eye(3), [1.0, 0.0], np.nan, MODEL), "dt"),
+    (lambda: slam.ekf_slam(np.zeros(3), np.eye(3), np.zeros((2, 2)), -0.25, [([], np.zeros((0, 2)))] * 2, np.eye(2),
+                           MODEL), "dt"),
+    (lambda: slam.icp_localization(np.ones((2, 4)), np.ones(4), np.ones((10, 2)), np.zeros((2, 2)), 0.0, np.zeros(3),
+                                   np.eye(3), MODEL, np.eye(3)), "dt"),
+    (lambda: slam.landmark_sd(slam.ekf_slam(np.zeros(3), np.eye(3), np.zeros((2, 2)), 0.1, [([1], [[1.0, 0.0]])] * 2,
+                                            np.eye(2), MODEL), 1), "count"),
 ])
 def test_bad_input_names_the_argument(call, name):
     with pytest.raises(ValueError, match=name):
+        call()
+
+
+@pytest.mark.parametrize("call,name", [
+    (lambda: slam.slam_predict(np.zeros(3), np.eye(3), [1.0, 0.0], 0.1, "unicycle"), "model"),
+    (lambda: slam.ekf_slam(np.zeros(3), np.eye(3), np.zeros((2, 2)), 0.1, [([], np.zeros((0, 2)))] * 2, np.eye(2),
+                           None), "model"),
+    (lambda: sc.slam_loop(42, np.ones((3, 2))), "rng"),
+    (lambda: sc.ring_landmarks(42), "rng"),
+])
+def test_wrong_types_name_the_argument(call, name):
+    with pytest.raises(TypeError, match=name):
         call()
 
 

@@ -10,6 +10,8 @@ import sympy as sp
 
 from kftrack import symbolic as S
 
+import closed_forms
+
 T, w, a = S.T, S.omega, S.alpha
 EPS = np.finfo(float).eps
 
@@ -47,19 +49,9 @@ def test_discrete_gains():
 def test_singer_closed_forms_and_limit():
     A = S.singer_A()
     F = S.transition_matrix(A)
-    e = sp.exp(-a * T)
-    F_ref = sp.Matrix([[1, T, (a * T - 1 + e) / a**2], [0, 1, (1 - e) / a], [0, 0, e]])
-    assert zero(F - F_ref)
+    F_list, Q_ref = closed_forms.singer(T, a, sp.exp)
+    assert zero(F - sp.Matrix(F_list))
     Q = S.continuous_white_noise(A, S.white_noise_gain(3, [2]), sp.Matrix([[1]]))
-    e2 = sp.exp(-2 * a * T)
-    Q_ref = {  # Singer (1970); written out again from the literature
-        (0, 0): ((1 - e2) + 2 * a * T + 2 * a**3 * T**3 / 3 - 2 * a**2 * T**2 - 4 * a * T * e) / (2 * a**5),
-        (0, 1): (a * T - (1 - e)) ** 2 / (2 * a**4),
-        (0, 2): ((1 - e2) - 2 * a * T * e) / (2 * a**3),
-        (1, 1): (2 * a * T - 4 * (1 - e) + (1 - e2)) / (2 * a**3),
-        (1, 2): (1 - e) ** 2 / (2 * a**2),
-        (2, 2): (1 - e2) / (2 * a),
-    }
     for (i, j), ref in Q_ref.items():
         assert sp.simplify(Q[i, j] - ref) == 0 and sp.simplify(Q[j, i] - ref) == 0
     # alpha -> 0: constant acceleration
@@ -69,13 +61,10 @@ def test_singer_closed_forms_and_limit():
 
 def test_turn_closed_forms():
     F = S.transition_matrix(S.turn_A())
-    s, c = sp.sin(w * T), sp.cos(w * T)
-    F_ref = sp.Matrix([[1, s / w, 0, -(1 - c) / w], [0, c, 0, -s], [0, (1 - c) / w, 1, s / w], [0, s, 0, c]])
-    assert zero(F - F_ref)
+    F_ref, Q_ref = closed_forms.known_turn(T, w, sp.sin, sp.cos)
+    assert zero(F - sp.Matrix(F_ref))
     Q = S.continuous_white_noise(S.turn_A(), S.white_noise_gain(4, [1, 3]), sp.eye(2))
-    q11, q12, q14 = 2 * (w * T - s) / w**3, (1 - c) / w**2, (w * T - s) / w**2
-    Q_ref = sp.Matrix([[q11, q12, 0, q14], [q12, T, -q14, 0], [0, -q14, q11, q12], [q14, 0, q12, T]])
-    assert zero(Q - Q_ref)
+    assert zero(Q - sp.Matrix(Q_ref))
     cwna = sp.Matrix([[T**3 / 3, T**2 / 2], [T**2 / 2, T]])
     assert zero(Q.applyfunc(lambda v: sp.limit(v, w, 0)) - sp.diag(cwna, cwna))
 
@@ -98,6 +87,14 @@ def test_coordinated_turn_jacobian_matches_seed000_and_limit():
     assert f3[4] == s3[4] + T * s3[5]
     with pytest.raises(ValueError, match="ndim"):
         S.coordinated_turn_state(1)
+
+
+def test_jacobian_of_a_measurement_function():
+    # range and bearing of a target at (x, y) seen from the origin: the textbook Jacobian
+    x, y = sp.symbols("x y", real=True)
+    r = sp.sqrt(x**2 + y**2)
+    H = S.jacobian(sp.Matrix([r, sp.atan2(y, x)]), sp.Matrix([x, y]))
+    assert zero(H - sp.Matrix([[x / r, y / r], [-y / r**2, x / r**2]]))
 
 
 def test_polar_form_is_the_same_motion():

@@ -161,6 +161,19 @@ def test_state_angle_is_wrapped_after_update():
     assert up.y[0] == pytest.approx(0.02, abs=1e-12)  # the innovation is wrapped as well
 
 
+def test_predicted_mean_of_a_state_angle_across_pi():
+    """f wraps its output, so the images of the sigma points straddle the cut: the circular
+    mean and wrapped spread give the translated Gaussian (exact for a translation); the plain
+    mean lands near zero, on the wrong side of the circle."""
+    f = lambda x: np.concatenate([ekf.wrap_angle(x[..., :1] + 0.2), x[..., 1:]], axis=-1)  # noqa: E731
+    x, P, Q = np.array([np.pi - 0.1, 1.0]), np.diag([0.15**2, 0.5]), np.diag([1e-4, 1e-3])
+    xp, Pp = ukf.ukf_predict(x, P, f, Q, state_angles=[0])
+    assert xp[0] == pytest.approx(np.pi + 0.1 - 2 * np.pi, abs=1e-12) and xp[1] == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(Pp, P + Q, rtol=1e-12, atol=1e-15)
+    xn, Pn = ukf.ukf_predict(x, P, f, Q)
+    assert abs(xn[0]) < 2.0 and Pn[0, 0] > 1.0  # what goes wrong without it
+
+
 def test_bad_input_names_the_argument():
     x, P = np.zeros(2), np.eye(2)
     with pytest.raises(TypeError, match="points"):

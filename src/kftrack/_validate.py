@@ -12,11 +12,20 @@ __all__ = ["as_float_array", "as_vector", "as_matrix", "check_covariance", "chec
 
 
 def as_float_array(value, name: str) -> np.ndarray:
-    """Convert ``value`` to a float ndarray or raise ``TypeError`` naming ``name``."""
+    """Convert ``value`` to a float ndarray or raise ``TypeError`` naming ``name``.
+
+    ``None`` and complex values are refused (NumPy would turn them into NaN or silently drop
+    the imaginary part).
+    """
+    if value is None:
+        raise TypeError(f"{name} must be an array of real numbers, got None")
     try:
-        arr = np.asarray(value, dtype=float)
+        raw = np.asarray(value)
+        arr = None if np.iscomplexobj(raw) else raw.astype(float, copy=False)
     except (TypeError, ValueError) as exc:
         raise TypeError(f"{name} must be an array of real numbers, got {type(value).__name__}") from exc
+    if arr is None:
+        raise TypeError(f"{name} must be an array of real numbers, got complex values ({raw.dtype})")
     return arr
 
 
@@ -40,28 +49,35 @@ def as_vector(value, name: str, n: int | None = None, allow_nan: bool = False) -
     return arr
 
 
-def as_matrix(value, name: str, rows: int | None = None, cols: int | None = None) -> np.ndarray:
-    """A stack of matrices, shape ``(..., rows, cols)``, finite."""
+def as_matrix(value, name: str, rows: int | None = None, cols: int | None = None, *,
+              origin: str = "") -> np.ndarray:
+    """A stack of matrices, shape ``(..., rows, cols)``, finite.
+
+    ``origin`` says where the expected sizes come from (``"m = 2 from z"``); it is appended
+    to a shape error.
+    """
     arr = as_float_array(value, name)
+    why = f" ({origin})" if origin else ""
     if arr.ndim < 2:
-        raise ValueError(f"{name} must have shape (..., {rows or 'r'}, {cols or 'c'}), got shape {arr.shape}")
+        raise ValueError(f"{name} must have shape (..., {rows or 'r'}, {cols or 'c'}), got shape {arr.shape}{why}")
     r, c = arr.shape[-2:]
     if (rows is not None and r != rows) or (cols is not None and c != cols):
         raise ValueError(
             f"{name} must have shape (..., {rows if rows is not None else r}, "
-            f"{cols if cols is not None else c}), got shape {arr.shape}"
+            f"{cols if cols is not None else c}), got shape {arr.shape}{why}"
         )
     return check_finite(arr, name)
 
 
-def check_covariance(value, name: str, n: int | None = None, positive_definite: bool = False) -> np.ndarray:
+def check_covariance(value, name: str, n: int | None = None, positive_definite: bool = False, *,
+                     origin: str = "") -> np.ndarray:
     """A stack of symmetric positive semi-definite (or definite) matrices ``(..., n, n)``.
 
     Symmetry and the sign of the smallest eigenvalue are judged relative to the largest
     entry, with a tolerance of a few thousand machine epsilons: round-off passes, a real
-    asymmetry or a negative variance does not.
+    asymmetry or a negative variance does not. ``origin`` as in :func:`as_matrix`.
     """
-    arr = as_matrix(value, name, n, n)
+    arr = as_matrix(value, name, n, n, origin=origin)
     if arr.shape[-1] != arr.shape[-2]:
         raise ValueError(f"{name} must be square, shape (..., n, n), got shape {arr.shape}")
     scale = np.max(np.abs(arr), axis=(-2, -1), keepdims=True) + np.finfo(float).tiny

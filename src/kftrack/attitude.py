@@ -118,6 +118,23 @@ def altimeter_tilt_correction(h, pitch, roll) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # linear models of the study
 # --------------------------------------------------------------------------------------------
+def _plant_ss(num, den, derivatives: int, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``A, B, C`` of ``num/den`` (``tf2ss``), checking that its first ``derivatives`` output
+    derivatives need no derivative of the input: relative degree ``>= derivatives``."""
+    num = np.trim_zeros(np.atleast_1d(as_float_array(num, "num")), "f")
+    den = np.trim_zeros(np.atleast_1d(as_float_array(den, "den")), "f")
+    if num.size == 0 or den.size < 2:
+        raise ValueError(f"num/den must be a nonzero plant of order >= 1, got num={num}, den={den}")
+    rel = den.size - num.size
+    if rel < 1:
+        raise ValueError("num/den must be strictly proper (deg num < deg den)")
+    if derivatives > rel:
+        raise ValueError(f"{name}={derivatives} exceeds the relative degree {rel} of num/den: that "
+                         f"derivative of the output depends on derivatives of the input")
+    A, B, C, _ = scipy.signal.tf2ss(num, den)
+    return A, B, C
+
+
 def dynamic_model(num, den, derivative: int, bias: bool = False) -> StateSpace:
     r"""Dynamic model: the plant ``num/den`` (reference in, angle or height out) in controllable
     canonical form, with the ``derivative``-th derivative of the output as a second output.
@@ -131,14 +148,12 @@ def dynamic_model(num, den, derivative: int, bias: bool = False) -> StateSpace:
     (``k = 1`` for the gyro, ``2`` for the vertical accelerometer). With ``bias=True`` a
     constant state ``b`` is appended and the fast sensor reads the derivative plus ``b``.
     """
-    A, B, C, D = scipy.signal.tf2ss(as_float_array(num, "num"), as_float_array(den, "den"))
     if not isinstance(derivative, (int, np.integer)) or derivative < 1:
         raise ValueError(f"derivative must be a positive integer, got {derivative!r}")
-    if np.any(D != 0):
-        raise ValueError("num/den must be strictly proper (deg num < deg den)")
+    A, B, C = _plant_ss(num, den, derivative, "derivative")
     Ak = np.linalg.matrix_power(A, derivative)
     C2 = np.vstack([C, C @ Ak])
-    D2 = np.vstack([D, C @ np.linalg.matrix_power(A, derivative - 1) @ B])
+    D2 = np.vstack([np.zeros((1, 1)), C @ np.linalg.matrix_power(A, derivative - 1) @ B])
     if not bias:
         return StateSpace(A, B, C2, D2)
     n = A.shape[0]
@@ -219,7 +234,12 @@ def plant_response(num, den, t, ref, derivatives: int = 1, delay: float = 0.0) -
         raise ValueError(f"t and ref must both have shape (T,), got {t.shape} and {ref.shape}")
     if delay < 0:
         raise ValueError(f"delay must be >= 0, got {delay}")
-    A, B, C, _ = scipy.signal.tf2ss(as_float_array(num, "num"), as_float_array(den, "den"))
+    if not isinstance(derivatives, (int, np.integer)) or derivatives < 0:
+        raise ValueError(f"derivatives must be a non-negative integer, got {derivatives!r}")
+    dt = t[1] - t[0] if t.size > 1 else 0.0
+    if not dt > 0 or not np.allclose(np.diff(t), dt, rtol=1e-9, atol=0):
+        raise ValueError("t must be uniformly spaced and increasing, with at least 2 samples")
+    A, B, C = _plant_ss(num, den, max(derivatives, 1), "derivatives")
     rows = [C]
     Dcol = [np.zeros((1, 1))]
     for k in range(1, derivatives + 1):
@@ -227,7 +247,6 @@ def plant_response(num, den, t, ref, derivatives: int = 1, delay: float = 0.0) -
         Dcol.append(C @ np.linalg.matrix_power(A, k - 1) @ B)
     u = np.interp(t - delay, t, ref, left=ref[0]) if delay else ref
     # ZOH at the sample rate: exact for a held reference
-    dt = t[1] - t[0]
     F, Bd, _ = sampled_model(A, B, np.zeros((A.shape[0], A.shape[0])), dt)
     x = np.zeros(A.shape[0])
     out = np.empty((t.size, derivatives + 1))
@@ -333,6 +352,13 @@ def integrated_filter(dt: float, y_a, omega_m, Xi=INTEGRATED_XI, Theta=INTEGRATE
 # --------------------------------------------------------------------------------------------
 # simulation of the sensors (the study's logs are not published)
 # --------------------------------------------------------------------------------------------
+def _variance(value, name: str) -> np.ndarray:
+    v = as_float_array(value, name)
+    if np.any(~np.isfinite(v)) or np.any(v < 0):
+        raise ValueError(f"{name} must be a finite per-sample variance >= 0, got {v}")
+    return v
+
+
 def body_rates(roll, pitch, roll_rate, pitch_rate, yaw_rate) -> np.ndarray:
     r"""Body angular rates ``[p, q, r]`` (rad/s) from ZYX Euler angles and their rates:
     :math:`p = \dot\phi - \dot\psi\sin\theta`, :math:`q = \dot\theta\cos\phi + \dot\psi\cos\theta\sin\phi`,
@@ -372,8 +398,8 @@ def simulate_imu(rng: np.random.Generator, rates, pitch, roll, *, gyro_bias=0.0,
         raise ValueError(f"pitch and roll must have shape {rates.shape[:-1]}, got {accel.shape[:-1]}")
     if accel_extra is not None:
         accel = accel + as_vector(accel_extra, "accel_extra", 3)
-    gs = np.sqrt(np.broadcast_to(as_float_array(gyro_var, "gyro_var"), (3,)))
-    as_ = np.sqrt(np.broadcast_to(as_float_array(accel_var, "accel_var"), (3,)))
+    gs = np.sqrt(np.broadcast_to(_variance(gyro_var, "gyro_var"), (3,)))
+    as_ = np.sqrt(np.broadcast_to(_variance(accel_var, "accel_var"), (3,)))
     gyro = rates + gyro_bias + gs * rng.standard_normal(rates.shape)
     return ImuLog(accel + as_ * rng.standard_normal(accel.shape), gyro)
 
@@ -393,7 +419,7 @@ def simulate_height_sensors(rng: np.random.Generator, h, hddot, *, accel_bias=0.
     hddot = as_float_array(hddot, "hddot")
     if h.shape != hddot.shape or h.ndim != 1:
         raise ValueError(f"h and hddot must both have shape (T,), got {h.shape} and {hddot.shape}")
-    h_m = h + np.sqrt(alt_var) * rng.standard_normal(h.shape)
+    h_m = h + np.sqrt(_variance(alt_var, "alt_var")) * rng.standard_normal(h.shape)
     h_m = np.where(h < dead_zone, 0.0, h_m)
-    a_m = hddot + accel_bias + np.sqrt(accel_var) * rng.standard_normal(h.shape)
+    a_m = hddot + accel_bias + np.sqrt(_variance(accel_var, "accel_var")) * rng.standard_normal(h.shape)
     return h_m, a_m

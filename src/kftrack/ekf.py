@@ -17,7 +17,8 @@ current estimate:
     y = z \ominus h(x^-), \quad S = H P^- H^\top + R, \quad K = P^- H^\top S^{-1},
 
 and the Joseph-form update of :mod:`kftrack.kalman`. :math:`\ominus` is subtraction with the
-components listed in ``angle_components`` wrapped to :math:`(-\pi, \pi]`.
+components listed in ``angle_components`` wrapped to :math:`(-\pi, \pi]`; state components
+listed in ``state_angles`` (a heading) are wrapped after each prediction and update.
 
 Shapes follow :mod:`kftrack.kalman`: ``x`` ``(..., n)``, ``P`` ``(..., n, n)``, time first for
 sequences. The callables must broadcast: ``f(x)`` maps ``(..., n)`` to ``(..., n)``,
@@ -85,10 +86,19 @@ def residual(a, b, angle_components: Sequence[int] = ()) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # unchecked kernels (shared with the UKF and the Monte Carlo loops)
 # --------------------------------------------------------------------------------------------
-def _ekf_predict(x, P, f, F_jac, Q):
+def _wrap_state(x, x_angles):
+    """Wrap the state components ``x_angles`` to (-pi, pi] (a copy; ``x`` itself when there are none)."""
+    if not x_angles:
+        return x
+    x = np.array(x, dtype=float)
+    x[..., x_angles] = wrap_angle(x[..., x_angles])
+    return x
+
+
+def _ekf_predict(x, P, f, F_jac, Q, x_angles=()):
     F = F_jac(x)
     _, P_pred = _predict(x, P, F, Q)
-    return f(x), P_pred
+    return _wrap_state(f(x), x_angles), P_pred
 
 
 def _gain_update(x, P, y, H, R) -> Update:
@@ -99,9 +109,10 @@ def _gain_update(x, P, y, H, R) -> Update:
     return u._replace(x=x + u.x)
 
 
-def _ekf_update(x, P, z, h, H_jac, R, angles) -> Update:
+def _ekf_update(x, P, z, h, H_jac, R, angles, x_angles=()) -> Update:
     y = _residual(z, h(x), angles)
-    return _gain_update(x, P, y, H_jac(x), R)
+    u = _gain_update(x, P, y, H_jac(x), R)
+    return u._replace(x=_wrap_state(u.x, x_angles)) if x_angles else u
 
 
 def _call(fn, x, name: str, shape: tuple) -> np.ndarray:
@@ -130,7 +141,7 @@ def linearized_transform(fn: Vector, jac: Vector, x, P) -> tuple[np.ndarray, np.
     return y, _sym(J @ P @ _T(J))
 
 
-def ekf_predict(x, P, f: Vector, F_jac: Vector, Q) -> tuple[np.ndarray, np.ndarray]:
+def ekf_predict(x, P, f: Vector, F_jac: Vector, Q, state_angles: Sequence[int] = ()) -> tuple[np.ndarray, np.ndarray]:
     r"""EKF time update :math:`x^- = f(x)`, :math:`P^- = F P F^\top + Q` with :math:`F = \partial f/\partial x\,(x)`.
 
     Parameters
@@ -140,16 +151,20 @@ def ekf_predict(x, P, f: Vector, F_jac: Vector, Q) -> tuple[np.ndarray, np.ndarr
     f : callable ``(..., n) -> (..., n)``, the transition function.
     F_jac : callable ``(..., n) -> (..., n, n)``, its Jacobian.
     Q : (n, n) or (..., n, n) process-noise covariance of the step.
+    state_angles : indices of the state that are angles (rad), e.g. a heading; ``f(x)`` is
+        wrapped to :math:`(-\pi, \pi]` there.
     """
     x, P, n = _check_state(x, P)
     Q = check_covariance(Q, "Q", n)
+    x_angles = _angles(state_angles, n, "state_angles")
     _call(f, x, "f", (n,))
     F = _call(F_jac, x, "F_jac", (n, n))
     _batch({"x": x.shape[:-1], "P": P.shape[:-2], "F_jac(x)": F.shape[:-2], "Q": Q.shape[:-2]})
-    return _ekf_predict(x, P, f, F_jac, Q)
+    return _ekf_predict(x, P, f, F_jac, Q, x_angles)
 
 
-def ekf_update(x, P, z, h: Vector, H_jac: Vector, R, angle_components: Sequence[int] = ()) -> Update:
+def ekf_update(x, P, z, h: Vector, H_jac: Vector, R, angle_components: Sequence[int] = (),
+               state_angles: Sequence[int] = ()) -> Update:
     r"""EKF measurement update (Joseph form) with innovation :math:`y = z \ominus h(x)`.
 
     Parameters
@@ -160,6 +175,7 @@ def ekf_update(x, P, z, h: Vector, H_jac: Vector, R, angle_components: Sequence[
     R : (m, m) or (..., m, m) measurement-noise covariance, positive definite.
     angle_components : indices of ``z`` that are angles (rad); their innovation is wrapped
         to :math:`(-\pi, \pi]`.
+    state_angles : indices of the state that are angles; the posterior mean is wrapped there.
 
     Returns
     -------
@@ -171,15 +187,16 @@ def ekf_update(x, P, z, h: Vector, H_jac: Vector, R, angle_components: Sequence[
     m = z.shape[-1]
     R = check_covariance(R, "R", m, positive_definite=True)
     angles = _angles(angle_components, m)
+    x_angles = _angles(state_angles, n, "state_angles")
     _call(h, x, "h", (m,))
     H = _call(H_jac, x, "H_jac", (m, n))
     _batch({"x": x.shape[:-1], "P": P.shape[:-2], "z": z.shape[:-1], "H_jac(x)": H.shape[:-2], "R": R.shape[:-2]})
-    return _ekf_update(x, P, z, h, H_jac, R, angles)
+    return _ekf_update(x, P, z, h, H_jac, R, angles, x_angles)
 
 
 def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H_jac: Vector, R,
-                           angle_components: Sequence[int] = (), *, R_per_step: bool = False,
-                           progress: bool = False) -> FilterResult:
+                           angle_components: Sequence[int] = (), *, state_angles: Sequence[int] = (),
+                           R_per_step: bool = False, progress: bool = False) -> FilterResult:
     r"""Filter a whole measurement sequence with the EKF: update with ``zs[k]``, then predict.
 
     Same conventions as :func:`kftrack.kalman.kalman_filter` (``x0`` is the prior of step 0,
@@ -196,16 +213,19 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H
         :math:`Q = \Gamma(\hat x)\,\Sigma\,\Gamma(\hat x)^\top`, :meth:`kftrack.models.Turn3DAngles.Q`).
     h, H_jac, R : measurement function, its Jacobian, measurement noise (see :func:`ekf_update`).
     angle_components : indices of the measurement that are angles (innovations wrapped).
+    state_angles : indices of the state that are angles (predicted and filtered means wrapped
+        to :math:`(-\pi, \pi]`).
     R_per_step : if True, ``R`` is time first, ``(T, ..., m, m)``: one covariance per step (and
         per run), as converted measurements need (:meth:`kftrack.sensors.radar.Radar.to_cartesian`).
-    progress : show a tqdm progress bar over the time steps (off in notebooks).
+    progress : show a tqdm progress bar over the time steps (its timings are not reproducible
+        output, so the book's executed notebooks leave it off).
 
     Returns
     -------
     kftrack.kalman.FilterResult
     """
     Q_fn = Q if callable(Q) else None
-    x0c, _, n0 = _check_state(x0, P0)
+    x0c, _, n0 = _check_state(x0, P0, ("x0", "P0"))
     if Q_fn is not None:
         Q = _call(Q_fn, x0c, "Q", (n0, n0))
     R_seq = None
@@ -213,6 +233,7 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H
         R_seq, R = _per_step(R, zs)
     zs, x0, P0, Q, R, n, m, batch, row_missing = _check_sequence(zs, x0, P0, Q, R)
     angles = _angles(angle_components, m)
+    x_angles = _angles(state_angles, n, "state_angles")
     xb = np.broadcast_to(x0, batch + (n,))
     _call(f, xb, "f", (n,))
     _call(F_jac, xb, "F_jac", (n, n))
@@ -220,12 +241,12 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H
     _call(H_jac, xb, "H_jac", (m, n))
     if Q_fn is not None:
         check_covariance(_call(Q_fn, xb, "Q", (n, n)), "Q(x0)", n)  # every run's start
-        predict = lambda x, P: _ekf_predict(x, P, f, F_jac, Q_fn(x))  # noqa: E731
+        predict = lambda x, P: _ekf_predict(x, P, f, F_jac, Q_fn(x), x_angles)  # noqa: E731
     else:
-        predict = lambda x, P: _ekf_predict(x, P, f, F_jac, Q)  # noqa: E731
+        predict = lambda x, P: _ekf_predict(x, P, f, F_jac, Q, x_angles)  # noqa: E731
     if R_seq is None:
         return _run_sequence(zs, x0, P0, batch, row_missing, predict,
-                             lambda x, P, z: _ekf_update(x, P, z, h, H_jac, R, angles), progress)
+                             lambda x, P, z: _ekf_update(x, P, z, h, H_jac, R, angles, x_angles), progress)
     # one covariance per step: carry it through the loop next to the measurement
     T = zs.shape[0]
     try:
@@ -240,7 +261,7 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H
         Rk = z[..., m:].reshape(z.shape[:-1] + (m, m))
         # runs without a measurement arrive zeroed (their result is discarded): keep S invertible
         Rk = np.where(np.all(Rk == 0.0, axis=(-2, -1))[..., None, None], np.eye(m), Rk)
-        return _ekf_update(x, P, z[..., :m], h, H_jac, Rk, angles)
+        return _ekf_update(x, P, z[..., :m], h, H_jac, Rk, angles, x_angles)
 
     return _run_sequence(packed, x0, P0, batch, row_missing, predict, update, progress)
 

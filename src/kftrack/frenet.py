@@ -51,6 +51,14 @@ __all__ = [
 ]
 
 
+def _positive_scalar(value, name: str, unit: str) -> float:
+    """A finite scalar ``> 0`` or a ValueError/TypeError naming ``name``."""
+    arr = check_finite(as_float_array(value, name), name)
+    if arr.ndim != 0 or not arr > 0:
+        raise ValueError(f"{name} must be a scalar > 0 ({unit}), got {value!r}")
+    return float(arr)
+
+
 # --------------------------------------------------------------------------------------------
 # symbolic
 # --------------------------------------------------------------------------------------------
@@ -103,12 +111,16 @@ def curvature_torsion(v, a, jerk=None) -> tuple[np.ndarray, np.ndarray | None]:
     :math:`\tau = (\mathbf v\times\mathbf a)\cdot\dot{\mathbf a}/|\mathbf v\times\mathbf a|^2`
     (1/m); ``v``, ``a``, ``jerk`` are ``(..., 3)``. The torsion is NaN where the motion is
     straight (:math:`\mathbf v\times\mathbf a = 0`); ``None`` when no ``jerk`` is given.
+    A zero velocity (no direction, no curvature) is refused.
     """
     v = as_vector(v, "v", 3)
     a = as_vector(a, "a", 3)
+    speed = np.linalg.norm(v, axis=-1)
+    if np.any(speed == 0):
+        raise ValueError("v must be non-zero everywhere: curvature and torsion are undefined at rest")
     va = np.cross(v, a)
     nva2 = np.sum(va * va, axis=-1)
-    kappa = np.sqrt(nva2) / np.linalg.norm(v, axis=-1) ** 3
+    kappa = np.sqrt(nva2) / speed**3
     if jerk is None:
         return kappa, None
     jerk = as_vector(jerk, "jerk", 3)
@@ -128,6 +140,8 @@ def curvature_torsion_from_samples(t, r) -> tuple[np.ndarray, np.ndarray]:
     r = as_vector(r, "r", 3)
     if t.ndim != 1 or r.shape[0] != t.shape[0] or t.shape[0] < 5:
         raise ValueError(f"t must be (T,) with T >= 5 and r (T, ..., 3); got t {t.shape}, r {r.shape}")
+    if not np.all(np.diff(t) > 0):
+        raise ValueError("t must be strictly increasing")
     v = np.gradient(r, t, axis=0, edge_order=2)
     a = np.gradient(v, t, axis=0, edge_order=2)
     j = np.gradient(a, t, axis=0, edge_order=2)
@@ -424,8 +438,9 @@ def simulate(segments: Sequence[Segment], dt: float, r0=(0.0, 0.0, 0.0), v0=(1.0
     dt : sampling interval (s), ``> 0``.
     r0, v0 : (3,) initial position (m) and velocity (m/s, non-zero).
     up : (3,) sets the initial binormal (see :func:`initial_frame`); ignored if ``frame0`` given.
-    frame0 : optional (3, 3) initial frame, rows ``t, n, b`` (orthonormal, ``t`` along ``v0``).
-    n_max : optional cap on the number of samples.
+    frame0 : optional (3, 3) initial frame, rows ``t, n, b`` (right-handed orthonormal, ``t``
+        along ``v0``).
+    n_max : optional cap on the number of samples (a positive integer).
     stepwise : compose the per-step rotations (see above).
 
     Returns
@@ -433,14 +448,22 @@ def simulate(segments: Sequence[Segment], dt: float, r0=(0.0, 0.0, 0.0), v0=(1.0
     FrenetTrack with samples at ``t = 0, dt, 2dt, ...`` up to the end of the last segment.
     """
     segs = _check_segments(segments)
-    d = float(check_finite(as_float_array(dt, "dt"), "dt"))
-    if not d > 0:
-        raise ValueError(f"dt must be > 0 (s), got {dt!r}")
+    d = _positive_scalar(dt, "dt", "s")
+    if n_max is not None and (isinstance(n_max, bool) or not isinstance(n_max, (int, np.integer)) or n_max < 1):
+        raise ValueError(f"n_max must be a positive integer or None, got {n_max!r}")
     r0 = as_vector(r0, "r0", 3)
-    E0 = initial_frame(v0, up) if frame0 is None else as_vector(frame0, "frame0", 3).reshape(3, 3)
-    if frame0 is not None and orthonormality_error(E0) > 1e-9:
-        raise ValueError("frame0 must be orthonormal (rows t, n, b)")
-    speed0 = float(np.linalg.norm(as_vector(v0, "v0", 3)))
+    if r0.shape != (3,):
+        raise ValueError(f"r0 must have shape (3,), got shape {r0.shape}")
+    v0 = as_vector(v0, "v0", 3)
+    speed0 = float(np.linalg.norm(v0))
+    if frame0 is None:
+        E0 = initial_frame(v0, up)
+    else:
+        E0 = as_vector(frame0, "frame0", 3)
+        if E0.shape != (3, 3) or orthonormality_error(E0) > 1e-9 or np.linalg.det(E0) < 0:
+            raise ValueError(f"frame0 must be a right-handed orthonormal (3, 3) frame (rows t, n, b), got {E0.tolist()}")
+        if v0.shape != (3,) or speed0 == 0 or np.linalg.norm(E0[0] - v0 / speed0) > 1e-9:
+            raise ValueError(f"frame0's tangent (first row) must point along v0, got {E0[0].tolist()} and v0={v0.tolist()}")
     t, s, speed, acc_t, idx, S = _schedule(segs, speed0, d, n_max)
     seg_k = np.array([g.kappa for g in segs])
     seg_t = np.array([g.tau for g in segs])
@@ -486,9 +509,7 @@ def simulate_euler(segments: Sequence[Segment], ds: float, r0=(0.0, 0.0, 0.0), v
     segs = _check_segments(segments)
     if any(g.accel != 0 for g in segs):
         raise ValueError("simulate_euler keeps the speed constant (as study 000): every Segment.accel must be 0")
-    step = float(check_finite(as_float_array(ds, "ds"), "ds"))
-    if not step > 0:
-        raise ValueError(f"ds must be > 0 (m), got {ds!r}")
+    step = _positive_scalar(ds, "ds", "m")
     r = as_vector(r0, "r0", 3).astype(float).copy()
     v0 = as_vector(v0, "v0", 3)
     E = initial_frame(v0, up)
@@ -529,9 +550,8 @@ def circle_closure(radius: float, ds: float, method: str = "exact") -> float:
     (one segment of length :math:`2\pi R`) simulated with ``method`` ``"exact"``
     (:func:`simulate` at unit speed, ``dt = ds``) or ``"euler"`` (:func:`simulate_euler`).
     Zero for an exact integrator."""
-    R = float(radius)
-    if not R > 0:
-        raise ValueError(f"radius must be > 0 (m), got {radius!r}")
+    R = _positive_scalar(radius, "radius", "m")
+    ds = _positive_scalar(ds, "ds", "m")
     seg = [Segment(2 * np.pi * R, 1.0 / R)]
     if method == "exact":
         # sample exactly at the end: choose dt dividing the circumference

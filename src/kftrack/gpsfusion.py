@@ -169,6 +169,27 @@ def _segment_distance(p, a, b):
     return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
 
 
+def _nearest_distances(inner, outer, max_elements: int = 2**19):
+    """min over j of |outer_i - inner_j|, (..., No). The nearest index comes from
+    |o|^2 + |i|^2 - 2 o.i (one matrix product, about the inner centroid), in chunks of the batch
+    to bound memory; the returned distance is then computed directly from the chosen pair."""
+    batch = np.broadcast_shapes(inner.shape[:-2], outer.shape[:-2])
+    Ni, No = inner.shape[-2], outer.shape[-2]
+    inner = np.broadcast_to(inner, batch + (Ni, 2)).reshape(-1, Ni, 2)
+    outer = np.broadcast_to(outer, batch + (No, 2)).reshape(-1, No, 2)
+    out = np.empty(outer.shape[:2])
+    step = max(1, max_elements // max(Ni * No, 1))
+    for s in range(0, len(outer), step):
+        i, o = inner[s:s + step], outer[s:s + step]
+        c = i.mean(-2, keepdims=True)
+        ic, oc = i - c, o - c
+        d2 = np.sum(ic * ic, -1)[:, None, :] - 2.0 * oc @ np.swapaxes(ic, -1, -2)  # + |o|^2, same per row
+        j = np.argmin(d2, -1)
+        nearest = np.take_along_axis(i, j[..., None], axis=-2)
+        out[s:s + step] = np.linalg.norm(o - nearest, axis=-1)
+    return out.reshape(batch + (No,))
+
+
 def lane_distances(inner, outer, pairing: str = "nearest") -> np.ndarray:
     """Distance from each point of the ``outer`` lap to the ``inner`` lap (the thesis's metric, Sec. 3.4).
 
@@ -192,8 +213,7 @@ def lane_distances(inner, outer, pairing: str = "nearest") -> np.ndarray:
         n = min(inner.shape[-2], outer.shape[-2])
         return np.linalg.norm(outer[..., :n, :] - inner[..., :n, :], axis=-1)
     if pairing == "nearest":
-        d = np.linalg.norm(outer[..., :, None, :] - inner[..., None, :, :], axis=-1)
-        return d.min(-1)
+        return _nearest_distances(inner, outer)
     if pairing == "polyline":
         a = inner[..., None, :, :]
         b = np.roll(inner, -1, axis=-2)[..., None, :, :]

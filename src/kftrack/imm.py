@@ -25,7 +25,8 @@ A step without a measurement is a :meth:`IMM.predict` alone: the mode probabilit
 **Modes** follow a small protocol (:class:`Mode`): an attribute ``n`` (state dimension),
 ``predict(x, P, dt) -> (x, P)`` and ``update(x, P, z) -> u`` with ``u.x``, ``u.P``, ``u.loglik``;
 all broadcast over leading batch axes. :class:`KalmanMode` wraps a linear model of
-:mod:`kftrack.models`, :class:`EKFMode` a nonlinear one (e.g. :class:`~kftrack.models.CoordinatedTurn`).
+:mod:`kftrack.models`, :class:`EKFMode` (Jacobians) and :class:`UKFMode` (sigma points) a nonlinear
+one (e.g. :class:`~kftrack.models.CoordinatedTurn`); a bank may mix the three.
 
 **Modes of different dimension** (constant velocity ``[x, vx, y, vy]`` beside the coordinated
 turn ``[x, vx, y, vy, omega]``). Every mode's state is a subset of one *common* state of
@@ -54,9 +55,10 @@ import scipy.linalg
 from ._validate import as_float_array, as_vector, check_covariance, check_finite
 from .ekf import _angles, _ekf_predict, _ekf_update
 from .kalman import Update, _batch, _predict, _sym, _update
+from .ukf import Points, _check_points, _ukf_predict, _ukf_update
 
 __all__ = [
-    "Mode", "KalmanMode", "EKFMode", "IMMState", "IMMResult", "IMM", "GPB1",
+    "Mode", "KalmanMode", "EKFMode", "UKFMode", "IMMState", "IMMResult", "IMM", "GPB1",
     "sojourn_generator", "sojourn_transition", "first_order_transition", "SojournTransition",
     "check_transition", "stationary_distribution", "mix_gaussians", "imm_filter", "clairvoyant_filter",
 ]
@@ -159,7 +161,33 @@ def _takes_state(Q: Callable) -> bool:
     return len(required) == 2
 
 
-class EKFMode:
+class _NonlinearMode:
+    """What :class:`EKFMode` and :class:`UKFMode` share: the model, the process noise (fixed or
+    state dependent), and a linear (``H``) or nonlinear (``h``) measurement with angle components."""
+
+    def __init__(self, model, R, H=None, h: Callable | None = None, angle_components: Sequence[int] = (),
+                 state_dependent_Q: bool | None = None):
+        self.model = model
+        self.n = int(model.n)
+        if state_dependent_Q is None:
+            state_dependent_Q = _takes_state(model.Q)
+        self.state_dependent_Q = bool(state_dependent_Q)
+        if h is None:
+            self.H, self.R = _measurement(model, R, H)
+            self._h = lambda x: (self.H @ x[..., None])[..., 0]
+        else:
+            self.R = check_covariance(R, "R", positive_definite=True)
+            self._h = h
+        self._angles = _angles(angle_components, self.R.shape[-1])
+
+    def _Q(self, x, dt):
+        return self.model.Q(x, dt) if self.state_dependent_Q else self.model.Q(dt)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.model!r})"
+
+
+class EKFMode(_NonlinearMode):
     r"""Extended-Kalman-filter mode: ``model.f(x, dt)``, ``model.jacobian(x, dt)``, ``model.Q(dt)``
     (or ``model.Q(x, dt)``, see ``state_dependent_Q``).
 
@@ -179,33 +207,53 @@ class EKFMode:
 
     def __init__(self, model, R, H=None, h: Callable | None = None, H_jac: Callable | None = None,
                  angle_components: Sequence[int] = (), state_dependent_Q: bool | None = None):
-        self.model = model
-        self.n = int(model.n)
-        if state_dependent_Q is None:
-            state_dependent_Q = _takes_state(model.Q)
-        self.state_dependent_Q = bool(state_dependent_Q)
         if (h is None) != (H_jac is None):
             raise ValueError("h and H_jac go together: give both (nonlinear measurement) or neither")
-        if h is None:
-            self.H, self.R = _measurement(model, R, H)
-            self._h = lambda x: (self.H @ x[..., None])[..., 0]
-            self._H_jac = lambda x: self.H
-        else:
-            self.R = check_covariance(R, "R", positive_definite=True)
-            self._h, self._H_jac = h, H_jac
-        self._angles = _angles(angle_components, self.R.shape[-1])
+        super().__init__(model, R, H, h, angle_components, state_dependent_Q)
+        self._H_jac = (lambda x: self.H) if H_jac is None else H_jac
 
     def predict(self, x, P, dt):
         """EKF time update; see :func:`kftrack.ekf.ekf_predict`."""
-        Q = self.model.Q(x, dt) if self.state_dependent_Q else self.model.Q(dt)
-        return _ekf_predict(x, P, lambda s: self.model.f(s, dt), lambda s: self.model.jacobian(s, dt), Q)
+        return _ekf_predict(x, P, lambda s: self.model.f(s, dt), lambda s: self.model.jacobian(s, dt),
+                            self._Q(x, dt))
 
     def update(self, x, P, z) -> Update:
         """EKF measurement update; see :func:`kftrack.ekf.ekf_update`."""
         return _ekf_update(x, P, z, self._h, self._H_jac, self.R, self._angles)
 
-    def __repr__(self) -> str:
-        return f"EKFMode({self.model!r})"
+
+class UKFMode(_NonlinearMode):
+    r"""Unscented-Kalman-filter mode: the unscented transform of ``model.f(x, dt)`` plus
+    ``model.Q(dt)`` (or ``model.Q(x, dt)`` at the mean, as in :class:`EKFMode`), and the unscented
+    measurement update; no Jacobians. ``model.f`` and ``h`` must broadcast over a stack of sigma
+    points ``(..., 2n+1, n)``.
+
+    Parameters
+    ----------
+    model : e.g. :class:`kftrack.models.CoordinatedTurn`; needs ``n``, ``f(x, dt)``, ``Q``.
+    R : (m, m) measurement-noise covariance.
+    H : (m, n) linear measurement matrix (default ``model.H``), used unless ``h`` is given.
+    h : nonlinear measurement function ``(..., n) -> (..., m)``.
+    points : sigma-point scheme (default :class:`kftrack.ukf.MerweScaledSigmaPoints`).
+    angle_components : indices of ``z`` that are angles (circular mean, wrapped innovation).
+    state_angles : indices of the state that are angles (e.g. a heading).
+    state_dependent_Q : as in :class:`EKFMode`.
+    """
+
+    def __init__(self, model, R, H=None, h: Callable | None = None, points: Points | None = None,
+                 angle_components: Sequence[int] = (), state_angles: Sequence[int] = (),
+                 state_dependent_Q: bool | None = None):
+        super().__init__(model, R, H, h, angle_components, state_dependent_Q)
+        self.points = _check_points(points)
+        self._state_angles = _angles(state_angles, self.n, "state_angles")
+
+    def predict(self, x, P, dt):
+        """UKF time update; see :func:`kftrack.ukf.ukf_predict`."""
+        return _ukf_predict(x, P, lambda s: self.model.f(s, dt), self._Q(x, dt), self.points, self._state_angles)
+
+    def update(self, x, P, z) -> Update:
+        """UKF measurement update; see :func:`kftrack.ukf.ukf_update`."""
+        return _ukf_update(x, P, z, self._h, self.R, self.points, self._state_angles, self._angles)
 
 
 # --------------------------------------------------------------------------------------------
@@ -413,8 +461,8 @@ class IMM:
 
     Parameters
     ----------
-    modes : sequence of r mode filters following :class:`Mode` (e.g. :class:`KalmanMode`,
-        :class:`EKFMode`).
+    modes : sequence of r mode filters following :class:`Mode` (:class:`KalmanMode`,
+        :class:`EKFMode`, :class:`UKFMode`, in any combination).
     transition : the Markov matrix ``Pi[i, j] = P(mode j at k | mode i at k-1)`` (rows sum to
         1), either a fixed ``(r, r)`` array (used per step, whatever ``dt``) or a callable
         ``dt -> Pi`` such as :class:`SojournTransition` (right for any ``dt``).
@@ -493,6 +541,13 @@ class IMM:
         return mu, x, P
 
     def _state(self, log_mu, xs, Ps, loglik) -> IMMState:
+        # a measurement with batch axes may meet a state without them; a linear update leaves P
+        # unbatched: give every field the common batch shape
+        batch = np.broadcast_shapes(log_mu.shape[:-1], *(a.shape[:-1] for a in xs), *(b.shape[:-2] for b in Ps))
+        xs = [np.broadcast_to(a, batch + a.shape[-1:]) for a in xs]
+        Ps = [np.broadcast_to(b, batch + b.shape[-2:]) for b in Ps]
+        log_mu = np.broadcast_to(log_mu, batch + log_mu.shape[-1:])
+        loglik = np.broadcast_to(loglik, batch + loglik.shape[-1:])
         mu, x, P = self._combine(log_mu, xs, Ps)
         return IMMState(x, P, mu, log_mu, tuple(xs), tuple(Ps), loglik)
 
@@ -561,6 +616,7 @@ class IMM:
         :math:`\\mu_j \\propto \\Lambda_j \\bar c_j` (log-sum-exp), then the combination."""
         z = as_vector(z, "z")
         _check_measurement_size(self.modes, z, "z")
+        _batch({"state.x": state.x.shape[:-1], "z": z.shape[:-1]})
         return self._update(state, z)
 
     def _update(self, state: IMMState, z) -> IMMState:
@@ -643,7 +699,7 @@ def _dts(dt, T: int) -> np.ndarray:
     return d
 
 
-def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None) -> IMMResult:
+def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None, *, progress: bool = False) -> IMMResult:
     """Run an :class:`IMM` (or :class:`GPB1`) over a measurement sequence: at each step update
     with ``zs[k]`` (skipped, not faked, when the row is NaN), then predict over ``dt[k]``.
 
@@ -654,6 +710,7 @@ def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None) -> IMMResult:
     x0, P0 : (..., N), (..., N, N) prior of step 0, in the common state.
     dt : interval (s) after each step, scalar or (T,).
     mu0 : optional initial mode probabilities (default: the estimator's).
+    progress : show a progress bar (tqdm) over the time steps, for long Monte Carlo runs.
     """
     zs, row_missing = _check_zs(zs)
     _check_measurement_size(estimator.modes, zs, "zs")
@@ -669,7 +726,12 @@ def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None) -> IMMResult:
     out = {k: np.empty((T,) + batch + shp) for k, shp in
            (("x_prior", (N,)), ("P_prior", (N, N)), ("mu_prior", (r,)), ("x", (N,)), ("P", (N, N)), ("mu", (r,)),
             ("loglik", (r,)))}
-    for k in range(T):
+    steps = range(T)
+    if progress:
+        from tqdm.auto import tqdm  # only when asked for
+
+        steps = tqdm(steps, desc=type(estimator).__name__, unit="step")
+    for k in steps:
         out["x_prior"][k], out["P_prior"][k], out["mu_prior"][k] = s.x, s.P, s.mu
         gone = np.broadcast_to(row_missing[k], batch)
         if not gone.all():

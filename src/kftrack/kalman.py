@@ -99,7 +99,8 @@ def _batch(name_shapes: dict[str, tuple]) -> tuple:
         return np.broadcast_shapes(*name_shapes.values())
     except ValueError:
         desc = ", ".join(f"{k} {v}" for k, v in name_shapes.items())
-        raise ValueError(f"batch axes do not broadcast: {desc}") from None
+        raise ValueError(f"batch axes do not broadcast: {desc}; the leading (batch) axes of the arguments "
+                         "must be equal or 1 (NumPy broadcasting), or absent for a shared matrix") from None
 
 
 def _predict(x, P, F, Q):
@@ -137,10 +138,10 @@ def _update(x, P, z, H, R, form: str = "joseph") -> Update:
     return Update(x_post, P_post, y, S, K, *_innovation_score(y, S))
 
 
-def _check_state(x, P):
-    x = as_vector(x, "x")
+def _check_state(x, P, names: tuple[str, str] = ("x", "P")):
+    x = as_vector(x, names[0])
     n = x.shape[-1]
-    P = check_covariance(P, "P", n)
+    P = check_covariance(P, names[1], n, origin=f"n = {n} from {names[0]}")
     return x, P, n
 
 
@@ -159,8 +160,8 @@ def predict(x, P, F, Q) -> tuple[np.ndarray, np.ndarray]:
     x, P : the predicted mean ``(..., n)`` and covariance ``(..., n, n)``.
     """
     x, P, n = _check_state(x, P)
-    F = as_matrix(F, "F", n, n)
-    Q = check_covariance(Q, "Q", n)
+    F = as_matrix(F, "F", n, n, origin=f"n = {n} from x")
+    Q = check_covariance(Q, "Q", n, origin=f"n = {n} from x")
     _batch({"x": x.shape[:-1], "P": P.shape[:-2], "F": F.shape[:-2], "Q": Q.shape[:-2]})
     return _predict(x, P, F, Q)
 
@@ -188,8 +189,8 @@ def update(x, P, z, H, R, *, form: str = "joseph") -> Update:
     x, P, n = _check_state(x, P)
     z = as_vector(z, "z")
     m = z.shape[-1]
-    H = as_matrix(H, "H", m, n)
-    R = check_covariance(R, "R", m, positive_definite=True)
+    H = as_matrix(H, "H", m, n, origin=f"m = {m} from z, n = {n} from x")
+    R = check_covariance(R, "R", m, positive_definite=True, origin=f"m = {m} from z")
     _batch({"x": x.shape[:-1], "P": P.shape[:-2], "z": z.shape[:-1], "H": H.shape[:-2], "R": R.shape[:-2]})
     return _update(x, P, z, H, R, form)
 
@@ -200,11 +201,11 @@ def _check_sequence(zs, x0, P0, Q, R):
     Returns ``zs, x0, P0, Q, R, n, m, batch, row_missing`` where ``row_missing`` ``(T, ...)``
     marks the all-NaN measurement rows.
     """
-    x0, P0, n = _check_state(x0, P0)
+    x0, P0, n = _check_state(x0, P0, ("x0", "P0"))
     zs, row_missing = as_measurement_sequence(zs, "zs")
     m = zs.shape[-1]
-    Q = check_covariance(Q, "Q", n)
-    R = check_covariance(R, "R", m, positive_definite=True)
+    Q = check_covariance(Q, "Q", n, origin=f"n = {n} from x0")
+    R = check_covariance(R, "R", m, positive_definite=True, origin=f"m = {m} from zs")
     batch = _batch({"zs[k]": zs.shape[1:-1], "x0": x0.shape[:-1], "P0": P0.shape[:-2],
                     "Q": Q.shape[:-2], "R": R.shape[:-2]})
     return zs, x0, P0, Q, R, n, m, batch, row_missing
@@ -262,8 +263,8 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, progress: bool = False) -> FilterRe
         priors and posteriors ``(T, ..., n)``, ``(T, ..., n, n)``; ``nis``, ``loglik`` ``(T, ...)``.
     """
     zs, x0, P0, Q, R, n, m, batch, row_missing = _check_sequence(zs, x0, P0, Q, R)
-    F = as_matrix(F, "F", n, n)
-    H = as_matrix(H, "H", m, n)
+    F = as_matrix(F, "F", n, n, origin=f"n = {n} from x0")
+    H = as_matrix(H, "H", m, n, origin=f"m = {m} from zs, n = {n} from x0")
     batch = _batch({"zs, x0, P0, Q, R": batch, "F": F.shape[:-2], "H": H.shape[:-2]})
     return _run_sequence(zs, x0, P0, batch, row_missing,
                          lambda x, P: _predict(x, P, F, Q),
@@ -287,7 +288,7 @@ def rts_smoother(result: FilterResult, F) -> SmootherResult:
     if not isinstance(result, FilterResult):
         raise TypeError(f"result must be a FilterResult from kalman_filter, got {type(result).__name__}")
     n = result.x.shape[-1]
-    F = as_matrix(F, "F", n, n)
+    F = as_matrix(F, "F", n, n, origin=f"n = {n} from the filter's states")
     batch = result.x.shape[1:-1]
     if _batch({"result": batch, "F": F.shape[:-2]}) != batch:
         raise ValueError(f"F must have shape ({n}, {n}) or the filter's batch axes {batch} + ({n}, {n}), "

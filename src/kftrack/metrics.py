@@ -32,8 +32,8 @@ def rmse(estimate, truth, axis=None, *, vector: bool = False) -> np.ndarray:
         summed before averaging: :math:`\sqrt{\operatorname{mean}\lVert e\rVert^2}`
         (e.g. a 2-D position RMSE). ``axis`` then refers to the remaining axes.
     """
-    est = np.asarray(estimate, dtype=float)
-    tru = np.asarray(truth, dtype=float)
+    est = as_float_array(estimate, "estimate")
+    tru = as_float_array(truth, "truth")
     try:
         err = est - tru
     except ValueError:
@@ -73,7 +73,11 @@ def anees(nees_values, dim: int, axis: int = 0) -> np.ndarray:
     """
     if int(dim) != dim or dim < 1:
         raise ValueError(f"dim must be a positive integer, got {dim!r}")
-    return np.mean(np.asarray(nees_values, dtype=float), axis=axis) / dim
+    values = as_float_array(nees_values, "nees_values")
+    if np.isinf(values).any() or (values < 0).any():
+        raise ValueError("nees_values must be non-negative and finite (NEES values), "
+                         f"got a minimum of {np.nanmin(values):.3g} and a maximum of {np.nanmax(values):.3g}")
+    return np.mean(values, axis=axis) / dim
 
 
 def chi2_bounds(dof: int, runs: int = 1, confidence: float = 0.95, *, normalize: bool = False) -> tuple[float, float]:

@@ -160,6 +160,15 @@ def _apply(F: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.einsum("...ij,...j->...i", F, x)
 
 
+def _check_batch(x: np.ndarray, dt_shape: tuple[int, ...]) -> None:
+    """The batch axes of ``x`` ``(..., n)`` and the shape of ``dt`` must broadcast."""
+    try:
+        np.broadcast_shapes(x.shape[:-1], dt_shape)
+    except ValueError:
+        raise ValueError(f"dt must be a scalar or broadcast with the batch axes of x: got dt of shape "
+                         f"{dt_shape} and x of shape {x.shape}") from None
+
+
 def _position_selector(n: int, positions: tuple[int, ...]) -> np.ndarray:
     H = np.zeros((len(positions), n))
     H[np.arange(len(positions)), positions] = 1.0
@@ -188,12 +197,15 @@ class _LinearModel:
     def f(self, x, dt) -> np.ndarray:
         """Transition function ``F(dt) x``; ``x`` ``(..., n)`` -> ``(..., n)``."""
         x = as_vector(x, "x", self.n)
-        return _apply(self.F(dt), x)
+        F = self.F(dt)
+        _check_batch(x, F.shape[:-2])
+        return _apply(F, x)
 
     def jacobian(self, x, dt) -> np.ndarray:
         """Jacobian of ``f``: ``F(dt)`` broadcast to the batch of ``x``, ``(..., n, n)``."""
         x = as_vector(x, "x", self.n)
         F = self.F(dt)
+        _check_batch(x, F.shape[:-2])
         return np.broadcast_to(F, np.broadcast_shapes(F.shape[:-2], x.shape[:-1]) + F.shape[-2:]).copy()
 
 
@@ -300,7 +312,10 @@ class Singer(_LinearModel):
 
     def __post_init__(self):
         object.__setattr__(self, "ndim", _ndim(self.ndim, (1, 2, 3)))
-        tau_ = float(as_float_array(self.tau, "tau"))
+        tau_ = as_float_array(self.tau, "tau")
+        if tau_.ndim != 0:
+            raise ValueError(f"tau must be a scalar time constant (s), got shape {tau_.shape}")
+        tau_ = float(tau_)
         if not tau_ > 0 or np.isnan(tau_):
             raise ValueError(f"tau must be > 0 (s; np.inf for constant acceleration), got {self.tau!r}")
         object.__setattr__(self, "tau", tau_)
@@ -461,6 +476,7 @@ class CoordinatedTurn:
     def _call(self, key: str, x, dt) -> np.ndarray:
         x = as_vector(x, "x", self.n)
         d = _dt(dt)
+        _check_batch(x, d.shape)
         return _coordinated_turn(self.ndim)[key](*np.moveaxis(x, -1, 0), d)
 
     def f(self, x, dt) -> np.ndarray:
@@ -509,15 +525,19 @@ class CoordinatedTurnPolar:
         """Position-measurement matrix, ``(2, 5)``."""
         return _position_selector(5, (0, 1))
 
+    def _call(self, key: str, x, dt) -> np.ndarray:
+        x = as_vector(x, "x", 5)
+        d = _dt(dt)
+        _check_batch(x, d.shape)
+        return _polar_turn()[key](*np.moveaxis(x, -1, 0), d)
+
     def f(self, x, dt) -> np.ndarray:
         """Transition function, ``(..., 5) -> (..., 5)``; exact at ``omega = 0``."""
-        x = as_vector(x, "x", 5)
-        return _polar_turn()["f"](*np.moveaxis(x, -1, 0), _dt(dt))[..., 0]
+        return self._call("f", x, dt)[..., 0]
 
     def jacobian(self, x, dt) -> np.ndarray:
         """Jacobian ``df/dx``, ``(..., 5, 5)``."""
-        x = as_vector(x, "x", 5)
-        return _polar_turn()["J"](*np.moveaxis(x, -1, 0), _dt(dt))
+        return self._call("J", x, dt)
 
 
 def turn_state_to_polar(x) -> np.ndarray:
@@ -606,12 +626,16 @@ class Turn3DAngles:
 
     * :meth:`F`: the paper's eq. (30), :math:`F = I + TA + \tfrac{T^2}{2}A^2` with :math:`\chi`
       and the rates frozen (what the paper calls its Jacobian: the **partial** Jacobian);
-    * :meth:`f`: the second-order Taylor transition :math:`F(\mathbf x)\mathbf x` (eq. 28);
+    * :meth:`f`: the second-order Taylor transition :math:`F(\mathbf x)\mathbf x` (eq. 28). Its
+      one-step error is :math:`O(T^3)` in position but only :math:`O(T^2)` in velocity when both
+      rates are non-zero (freezing :math:`\chi` drops :math:`\dot A\mathbf v` from the second
+      derivative), :math:`O(T^3)` again when :math:`\omega_\gamma = 0`;
     * :meth:`jacobian`: the **full** Jacobian of :meth:`f`, with the :math:`\partial/\partial\omega`
       columns and the :math:`\partial\chi/\partial v` terms;
     * :meth:`f_taylor_exact`: the true second-order Taylor step
       :math:`\mathbf x + T\mathbf g + \tfrac{T^2}{2}J_g\mathbf g` of the vector field
-      :math:`\mathbf g = A\mathbf x` (the paper's :math:`\ddot X = A\dot X` drops :math:`\dot A`);
+      :math:`\mathbf g = A\mathbf x` (the paper's :math:`\ddot X = A\dot X` drops :math:`\dot A`),
+      one-step error :math:`O(T^3)` in every component;
     * :meth:`f_exact`: the exact motion, :math:`\chi = \chi_0 + \omega_\chi t`,
       :math:`\gamma = \gamma_0 + \omega_\gamma t`, positions integrated in closed form.
 

@@ -189,8 +189,10 @@ def pose_covariance(points, sigma: float, pose=(0.0, 0.0, 0.0)) -> np.ndarray:
     errors and *known* pairs, :math:`\operatorname{Cov}(x, y, \theta) \approx \sigma^2 (J^\top J)^{-1}`,
     :math:`J_i = \partial r_i/\partial(t_x, t_y, \theta) = [I_2,\; R'(\theta) p_i]`.
 
-    A lower bound for scan-to-map ICP: there the pairs are nearest map points, not the same
-    physical points, and a wall constrains only its normal direction. Calibrate by Monte Carlo.
+    Not the covariance of scan-to-map ICP, and not a bound on it either way: there the pairs
+    are nearest map points, not the same physical points, a wall constrains only its normal
+    direction, and LIDAR noise lies along the beam. Calibrate by Monte Carlo
+    (:func:`kftrack.slam.scan_match_errors`).
     """
     p = _points(points, "points", 2)
     if not (np.isfinite(sigma) and sigma > 0):

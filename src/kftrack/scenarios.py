@@ -493,6 +493,9 @@ def tilted_zigzag(rng: np.random.Generator, *, sigma: float = 75.0, tilt_deg: fl
     +``turn_deg`` (so the first turn climbs and the last leg is level again), and the tilt
     axis along the initial velocity. Every turn is planar (zero torsion). Measurements are
     Cartesian positions with std ``sigma`` (m), not the paper's polar radar."""
+    speed, dt, omega = _positive(speed, "speed"), _positive(dt, "dt"), _positive(omega, "omega")
+    turn_deg, leg = _positive(turn_deg, "turn_deg"), _positive(leg, "leg")
+    tilt_deg = float(check_finite(as_float_array(tilt_deg, "tilt_deg"), "tilt_deg"))
     v0 = speed * np.array([np.cos(np.arctan2(154.98, 196.16)), np.sin(np.arctan2(154.98, 196.16)), 0.0])
     kappa = omega / speed
     arc = np.deg2rad(turn_deg) / kappa
@@ -509,7 +512,14 @@ def climbing_helix(rng: np.random.Generator, *, sigma: float = 10.0, speed: floa
     r"""A straight climb of ``lead_in`` s, then a climbing turn at ``rate`` rad/s about the
     vertical (counter-clockwise from above) for ``duration`` s: a circular helix of radius
     :math:`R = v\cos\gamma/\Omega`, curvature :math:`\cos^2\gamma/R` and torsion
-    :math:`\sin\gamma\cos\gamma/R` (:math:`\gamma` = ``climb_deg``)."""
+    :math:`\sin\gamma\cos\gamma/R` (:math:`\gamma` = ``climb_deg``). A negative ``rate``
+    turns clockwise (a left-handed helix, negative torsion)."""
+    speed, dt = _positive(speed, "speed"), _positive(dt, "dt")
+    lead_in, duration = _positive(lead_in, "lead_in"), _positive(duration, "duration")
+    rate = float(check_finite(as_float_array(rate, "rate"), "rate"))
+    climb_deg = float(check_finite(as_float_array(climb_deg, "climb_deg"), "climb_deg"))
+    if rate == 0 or not abs(climb_deg) < 90:
+        raise ValueError(f"rate must be non-zero (rad/s) and |climb_deg| < 90, got rate={rate!r}, climb_deg={climb_deg!r}")
     g = np.deg2rad(climb_deg)
     R = speed * np.cos(g) / rate
     segs = [_fr.Segment(speed * lead_in), _fr.Segment(speed * duration, np.cos(g) ** 2 / R, np.sin(g) * np.cos(g) / R)]
@@ -580,6 +590,8 @@ def ring_landmarks(rng: np.random.Generator, count: int = 12, radius: float = 6.
     """``count`` point landmarks ``(count, 2)`` around a circle of ``radius``: evenly spaced in
     angle with a uniform jitter of ±1/4 spacing, alternately inside and outside the circle by
     ``spread`` ± 0.5 m."""
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
     count = _count(count, "count")
     radius, spread = _positive(radius, "radius"), _positive(spread, "spread")
     ang = 2 * np.pi * (np.arange(count) + rng.uniform(-0.25, 0.25, count)) / count
@@ -619,6 +631,14 @@ def slam_loop(rng: np.random.Generator, landmarks, *, loops: float = 1.0, runs: 
     ``landmarks`` closer than ``max_range`` carry white Gaussian noise of the given standard
     deviations (m/s, rad/s, m, rad). ``runs=N`` draws N independent noise realisations on the
     same true path."""
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    for name, val in (("sigma_v", sigma_v), ("sigma_omega", sigma_omega), ("sigma_range", sigma_range),
+                      ("sigma_bearing", sigma_bearing)):
+        if not (np.isfinite(val) and val >= 0):
+            raise ValueError(f"{name} must be a non-negative standard deviation, got {val!r}")
+    if not max_range > 0:
+        raise ValueError(f"max_range must be a positive distance (m), got {max_range!r}")
     lm = check_finite(as_float_array(landmarks, "landmarks"), "landmarks")
     if lm.ndim != 2 or lm.shape[1] != 2:
         raise ValueError(f"landmarks must have shape (L, 2), got shape {lm.shape}")

@@ -205,6 +205,19 @@ def landmark_block(j: int) -> slice:
     return slice(3 + 2 * j, 5 + 2 * j)
 
 
+def _check_motion(dt, model) -> float:
+    """Boundary check of a time step (s) and the motion model."""
+    if not isinstance(model, Unicycle):
+        raise TypeError(f"model must be a kftrack.slam.Unicycle, got {type(model).__name__}")
+    try:
+        dt = float(dt)
+    except (TypeError, ValueError):
+        raise TypeError(f"dt must be a time step in seconds (a number), got {type(dt).__name__}") from None
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive, finite time step (s), got {dt!r}")
+    return dt
+
+
 def _check(x, P):
     x = as_vector(x, "x")
     landmark_count(x)
@@ -231,6 +244,7 @@ def slam_predict(x, P, u, dt: float, model: Unicycle) -> tuple[np.ndarray, np.nd
     """
     x, P = _check(x, P)
     as_vector(u, "u", 2)
+    dt = _check_motion(dt, model)
     return _predict(x, P, u, dt, model)
 
 
@@ -432,6 +446,7 @@ def ekf_slam(x0, P0, odometry, dt: float, observations, R, model: Unicycle, *, k
     -------
     SlamResult
     """
+    dt = _check_motion(dt, model)
     x = as_vector(x0, "x0", 3)
     P = check_covariance(P0, "P0", 3)
     try:
@@ -536,6 +551,7 @@ def icp_localization(scans, angles, map_points, odometry, dt: float, x0, P0, mod
     model : :class:`Unicycle`; ``R_icp`` (3, 3): the stated covariance of the ICP pose.
     max_distance : ICP pair rejection distance (m).
     """
+    dt = _check_motion(dt, model)
     scans = np.asarray(scans, dtype=float)
     u = as_vector(odometry, "odometry", 2)
     if scans.ndim != 2 or u.shape != (scans.shape[0], 2):
@@ -579,6 +595,8 @@ def landmark_sd(result: SlamResult, count: int) -> np.ndarray:
     indexed by true landmark id (known-association runs, one run); NaN before it is mapped."""
     if not result.ids or not isinstance(result.ids[0], (int, np.integer)):
         raise ValueError("result must come from ekf_slam(..., known=True) (ids in state order)")
+    if int(count) != count or count < max(result.ids) + 1:
+        raise ValueError(f"count must be an integer above the largest landmark id {max(result.ids)}, got {count!r}")
     out = np.full((len(result.P), int(count)), np.nan)
     for k, P in enumerate(result.P):
         for slot in range(landmark_count(result.x[k])):
