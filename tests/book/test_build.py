@@ -55,3 +55,17 @@ def test_exercises_and_bibliography_render(built_site: Path) -> None:
     for name in [f for f in _toc_files() if f.startswith("notebooks/")]:
         html = (built_site / f"{name}.html").read_text(encoding="utf-8")
         assert "exercise" in html, f"{name}: no exercise block"
+
+
+def test_mathematics_is_served_by_the_site_itself(built_site: Path) -> None:
+    """MathJax comes from _static/ (book/_ext/offline_mathjax.py), not a CDN: the site renders
+    its equations offline."""
+    bundle = built_site / "_static" / "mathjax" / "tex-mml-chtml.js"
+    assert bundle.is_file() and bundle.stat().st_size > 500_000
+    fonts = list((built_site / "_static" / "mathjax" / "output" / "chtml" / "fonts" / "woff-v2").glob("*.woff"))
+    assert len(fonts) > 10
+    for name in _toc_files():
+        html = (built_site / f"{name}.html").read_text(encoding="utf-8")
+        assert "cdn.jsdelivr.net/npm/mathjax" not in html, f"{name}: MathJax still loaded from a CDN"
+        if "\\(" in html or "\\[" in html:
+            assert "_static/mathjax/tex-mml-chtml.js" in html, f"{name}: equations but no local MathJax"
