@@ -202,6 +202,16 @@ def test_complementary_angle_filters_symbolic():
                        (sp.Matrix([[0, -1], [0, 0]]), sp.Matrix([1, 0]), sp.Matrix([[1, 0]]), sp.Matrix([l1, l2]))]:
         M = (s * sp.eye(A.shape[0]) - A + L * C).inv()
         assert sp.simplify((C * M * L)[0] + s * (C * M * B)[0] - 1) == 0
+        # the package's transfer functions of the same filter, at numeric gains, agree
+        num = _package_residual(A, B, C, L.subs({l1: 1.3, l2: -0.4}))
+        assert np.max(np.abs(num)) < 1e-12
+
+
+def _package_residual(A, B, C, L):
+    """T_slow + s T_fast - 1 of the estimator (A, B, C, L) by steady.estimator_tf and
+    steady.complementary_residual: numerator coefficients, highest power first."""
+    tf = steady.estimator_tf(*(np.array(M, dtype=float) for M in (A, B, C)), None, np.array(L, dtype=float))
+    return steady.complementary_residual(tf[0][0], tf[0][1], 1)
 
 
 def test_dynamic_model_filter_is_not_complementary_symbolic():
@@ -211,6 +221,10 @@ def test_dynamic_model_filter_is_not_complementary_symbolic():
     A, B, C, L = sp.Matrix([[-a]]), sp.Matrix([1]), sp.Matrix([[1]]), sp.Matrix([l1])
     M = (s * sp.eye(1) - A + L * C).inv()
     assert sp.simplify((C * M * L)[0] + s * (C * M * B)[0] - 1 - (-a) / (s + a + l1)) == 0
+    # the package finds the same defect: numerator -a over the common denominator s + a + l1
+    vals = {a: 0.7, l1: 1.3}
+    num = _package_residual(A.subs(vals), B, C, L.subs(vals))
+    np.testing.assert_allclose(np.trim_zeros(num, "f"), [-0.7], rtol=1e-12)
 
 
 def test_complementary_residual_detects_non_complementary_and_bad_input():

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["as_float_array", "as_vector", "as_matrix", "check_covariance", "check_finite"]
+__all__ = ["as_float_array", "as_vector", "as_matrix", "check_covariance", "check_finite", "check_rng",
+           "finite_scalar", "positive_scalar"]
 
 
 def as_float_array(value, name: str) -> np.ndarray:
@@ -111,3 +112,26 @@ def as_measurement_sequence(value, name: str = "zs") -> tuple[np.ndarray, np.nda
         k = int(np.argwhere(partial)[0][0])
         raise ValueError(f"{name} has a row at step {k} that is only partly NaN; a missing measurement is a row of NaN")
     return arr, missing.all(-1)
+
+
+def check_rng(rng) -> np.random.Generator:
+    """``rng`` itself if it is a ``numpy.random.Generator``, else a ``TypeError`` naming it."""
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    return rng
+
+
+def finite_scalar(value, name: str) -> float:
+    """A finite real scalar, as a float (a ``ValueError``/``TypeError`` naming ``name`` otherwise)."""
+    arr = check_finite(as_float_array(value, name), name)
+    if arr.ndim != 0:
+        raise ValueError(f"{name} must be a scalar, got shape {arr.shape}")
+    return float(arr)
+
+
+def positive_scalar(value, name: str, unit: str = "") -> float:
+    """A finite real scalar ``> 0`` (``unit`` is named in the error), as a float."""
+    v = finite_scalar(value, name)
+    if not v > 0:
+        raise ValueError(f"{name} must be > 0{f' ({unit})' if unit else ''}, got {value!r}")
+    return v

@@ -33,7 +33,7 @@ import scipy.linalg
 import scipy.signal
 from scipy.spatial.transform import Rotation
 
-from ._validate import as_float_array, as_vector, check_covariance
+from ._validate import as_float_array, as_vector, check_covariance, check_rng
 from .kalman import _predict, _update
 from .steady import (SteadyState, continuous_gain, discrete_gain, estimator_tf, observability_gramian,
                      sampled_model)
@@ -390,8 +390,7 @@ def simulate_imu(rng: np.random.Generator, rates, pitch, roll, *, gyro_bias=0.0,
     **per-sample variances** (scalar or per axis), as measured at rest in chapter 1; white
     Gaussian noise from ``rng``.
     """
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    check_rng(rng)
     rates = as_vector(rates, "rates", 3)
     accel = accel_from_tilt(pitch, roll, g)
     if accel.shape != rates.shape:
@@ -413,8 +412,7 @@ def simulate_height_sensors(rng: np.random.Generator, h, hddot, *, accel_bias=0.
     the study feeds the 0 to its filter), ``hddot_m = hddot + accel_bias + n``. Variances are
     per sample (m², (m/s²)²).
     """
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    check_rng(rng)
     h = as_float_array(h, "h")
     hddot = as_float_array(hddot, "hddot")
     if h.shape != hddot.shape or h.ndim != 1:

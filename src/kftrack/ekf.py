@@ -34,7 +34,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ._validate import as_float_array, as_matrix, as_vector, check_covariance
+from ._validate import as_float_array, as_matrix, as_vector, check_covariance, check_rng
 from .kalman import FilterResult, Update, _batch, _check_sequence, _check_state, _predict, _run_sequence, _sym, _T, _update
 
 __all__ = ["wrap_angle", "residual", "linearized_transform", "ekf_predict", "ekf_update", "extended_kalman_filter",
@@ -304,8 +304,7 @@ def simulate_additive_gaussian(f: Vector, h: Vector, x0, P0, Q, R, steps: int, r
     truth : (T, N, n) or (T, n) true states.
     zs : (T, N, m) or (T, m) measurements.
     """
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    check_rng(rng)
     if int(steps) != steps or steps < 1:
         raise ValueError(f"steps must be a positive integer, got {steps!r}")
     if runs is not None and (int(runs) != runs or runs < 1):

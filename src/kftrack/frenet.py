@@ -41,7 +41,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 import sympy as sp
 
-from ._validate import as_float_array, as_vector, check_finite
+from ._validate import as_float_array, as_vector, check_finite, positive_scalar
 
 __all__ = [
     "frenet_sym", "helix_sym", "curvature_torsion", "curvature_torsion_from_samples",
@@ -49,14 +49,6 @@ __all__ = [
     "CONVENTIONS", "initial_frame", "Segment", "FrenetTrack", "segments_from_radii",
     "simulate", "simulate_euler", "orthonormality_error", "circle_closure",
 ]
-
-
-def _positive_scalar(value, name: str, unit: str) -> float:
-    """A finite scalar ``> 0`` or a ValueError/TypeError naming ``name``."""
-    arr = check_finite(as_float_array(value, name), name)
-    if arr.ndim != 0 or not arr > 0:
-        raise ValueError(f"{name} must be a scalar > 0 ({unit}), got {value!r}")
-    return float(arr)
 
 
 # --------------------------------------------------------------------------------------------
@@ -448,7 +440,7 @@ def simulate(segments: Sequence[Segment], dt: float, r0=(0.0, 0.0, 0.0), v0=(1.0
     FrenetTrack with samples at ``t = 0, dt, 2dt, ...`` up to the end of the last segment.
     """
     segs = _check_segments(segments)
-    d = _positive_scalar(dt, "dt", "s")
+    d = positive_scalar(dt, "dt", "s")
     if n_max is not None and (isinstance(n_max, bool) or not isinstance(n_max, (int, np.integer)) or n_max < 1):
         raise ValueError(f"n_max must be a positive integer or None, got {n_max!r}")
     r0 = as_vector(r0, "r0", 3)
@@ -509,7 +501,7 @@ def simulate_euler(segments: Sequence[Segment], ds: float, r0=(0.0, 0.0, 0.0), v
     segs = _check_segments(segments)
     if any(g.accel != 0 for g in segs):
         raise ValueError("simulate_euler keeps the speed constant (as study 000): every Segment.accel must be 0")
-    step = _positive_scalar(ds, "ds", "m")
+    step = positive_scalar(ds, "ds", "m")
     r = as_vector(r0, "r0", 3).astype(float).copy()
     v0 = as_vector(v0, "v0", 3)
     E = initial_frame(v0, up)
@@ -550,8 +542,8 @@ def circle_closure(radius: float, ds: float, method: str = "exact") -> float:
     (one segment of length :math:`2\pi R`) simulated with ``method`` ``"exact"``
     (:func:`simulate` at unit speed, ``dt = ds``) or ``"euler"`` (:func:`simulate_euler`).
     Zero for an exact integrator."""
-    R = _positive_scalar(radius, "radius", "m")
-    ds = _positive_scalar(ds, "ds", "m")
+    R = positive_scalar(radius, "radius", "m")
+    ds = positive_scalar(ds, "ds", "m")
     seg = [Segment(2 * np.pi * R, 1.0 / R)]
     if method == "exact":
         # sample exactly at the end: choose dt dividing the circumference

@@ -27,7 +27,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validate import as_float_array, as_vector, check_finite
+from ._validate import as_float_array, as_vector, check_finite, check_rng
 
 __all__ = ["noisy_runs", "per_run_error", "PairedDifference", "paired_difference", "Comparison", "compare",
            "run_filters"]
@@ -48,8 +48,7 @@ def noisy_runs(rng: np.random.Generator, clean, sigma, runs: int) -> np.ndarray:
     -------
     (T, N, m) measurements.
     """
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    check_rng(rng)
     clean = as_vector(clean, "clean")
     if clean.ndim != 2:
         raise ValueError(f"clean must have shape (T, m), time first, got shape {clean.shape}")

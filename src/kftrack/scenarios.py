@@ -40,7 +40,7 @@ import numpy as np
 
 from . import frenet as _fr
 from . import slam as _slam
-from ._validate import as_float_array, check_finite
+from ._validate import as_float_array, check_finite, check_rng, finite_scalar, positive_scalar
 from .ekf import wrap_angle as _wrap_angle
 
 __all__ = [
@@ -177,13 +177,6 @@ class CarRadarStudy:
 COSTA2023_CAR = CarRadarStudy()
 
 
-def _positive(value, name: str) -> float:
-    v = float(check_finite(as_float_array(value, name), name))
-    if not v > 0:
-        raise ValueError(f"{name} must be > 0, got {value!r}")
-    return v
-
-
 def _count(value, name: str, allow_none: bool = False) -> int | None:
     if value is None and allow_none:
         return None
@@ -193,8 +186,7 @@ def _count(value, name: str, allow_none: bool = False) -> int | None:
 
 
 def _noisy(rng: np.random.Generator, clean: np.ndarray, sigma: float, runs: int | None) -> np.ndarray:
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    check_rng(rng)
     shape = clean.shape[:1] + (() if runs is None else (runs,)) + clean.shape[1:]
     noise = sigma * rng.standard_normal(shape)
     return (clean if runs is None else clean[:, None]) + noise
@@ -231,9 +223,9 @@ def car_radar(rng: np.random.Generator, n_steps: int = 30, *, sigma: float = 0.1
     """
     n_steps = _count(n_steps, "n_steps")
     runs = _count(runs, "runs", allow_none=True)
-    sigma, dt = _positive(sigma, "sigma"), _positive(dt, "dt")
-    x1 = COSTA2023_CAR.z[1] if start is None else float(check_finite(as_float_array(start, "start"), "start"))
-    v = COSTA2023_CAR.speed if speed is None else float(check_finite(as_float_array(speed, "speed"), "speed"))
+    sigma, dt = positive_scalar(sigma, "sigma"), positive_scalar(dt, "dt")
+    x1 = COSTA2023_CAR.z[1] if start is None else finite_scalar(start, "start")
+    v = COSTA2023_CAR.speed if speed is None else finite_scalar(speed, "speed")
     t = dt * np.arange(1, n_steps + 1)
     truth = np.stack([x1 + v * (t - t[0]), np.full(n_steps, v)], axis=-1)
     z = _noisy(rng, truth[:, :1], sigma, runs)
@@ -368,7 +360,7 @@ def robot(rng: np.random.Generator, n_steps: int = 35, *, sigma: float = 3.0, dt
     """
     n_steps = _count(n_steps, "n_steps")
     runs = _count(runs, "runs", allow_none=True)
-    sigma, dt = _positive(sigma, "sigma"), _positive(dt, "dt")
+    sigma, dt = positive_scalar(sigma, "sigma"), positive_scalar(dt, "dt")
     t = dt * np.arange(1, n_steps + 1)
     truth = robot_truth(t)
     z = _noisy(rng, truth[:, [0, 3]], sigma, runs)
@@ -400,9 +392,8 @@ class ManoeuvreScenario(NamedTuple):
 
 
 def _manoeuvre(rng: np.random.Generator, track, sigma: float) -> ManoeuvreScenario:
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
-    s = float(check_finite(as_float_array(sigma, "sigma"), "sigma"))
+    check_rng(rng)
+    s = finite_scalar(sigma, "sigma")
     if s < 0:
         raise ValueError(f"sigma must be >= 0 (m), got {sigma!r}")
     truth = np.stack([track.r[:, 0], track.v[:, 0], track.r[:, 1], track.v[:, 1],
@@ -493,9 +484,9 @@ def tilted_zigzag(rng: np.random.Generator, *, sigma: float = 75.0, tilt_deg: fl
     +``turn_deg`` (so the first turn climbs and the last leg is level again), and the tilt
     axis along the initial velocity. Every turn is planar (zero torsion). Measurements are
     Cartesian positions with std ``sigma`` (m), not the paper's polar radar."""
-    speed, dt, omega = _positive(speed, "speed"), _positive(dt, "dt"), _positive(omega, "omega")
-    turn_deg, leg = _positive(turn_deg, "turn_deg"), _positive(leg, "leg")
-    tilt_deg = float(check_finite(as_float_array(tilt_deg, "tilt_deg"), "tilt_deg"))
+    speed, dt, omega = positive_scalar(speed, "speed"), positive_scalar(dt, "dt"), positive_scalar(omega, "omega")
+    turn_deg, leg = positive_scalar(turn_deg, "turn_deg"), positive_scalar(leg, "leg")
+    tilt_deg = finite_scalar(tilt_deg, "tilt_deg")
     v0 = speed * np.array([np.cos(np.arctan2(154.98, 196.16)), np.sin(np.arctan2(154.98, 196.16)), 0.0])
     kappa = omega / speed
     arc = np.deg2rad(turn_deg) / kappa
@@ -514,10 +505,10 @@ def climbing_helix(rng: np.random.Generator, *, sigma: float = 10.0, speed: floa
     :math:`R = v\cos\gamma/\Omega`, curvature :math:`\cos^2\gamma/R` and torsion
     :math:`\sin\gamma\cos\gamma/R` (:math:`\gamma` = ``climb_deg``). A negative ``rate``
     turns clockwise (a left-handed helix, negative torsion)."""
-    speed, dt = _positive(speed, "speed"), _positive(dt, "dt")
-    lead_in, duration = _positive(lead_in, "lead_in"), _positive(duration, "duration")
-    rate = float(check_finite(as_float_array(rate, "rate"), "rate"))
-    climb_deg = float(check_finite(as_float_array(climb_deg, "climb_deg"), "climb_deg"))
+    speed, dt = positive_scalar(speed, "speed"), positive_scalar(dt, "dt")
+    lead_in, duration = positive_scalar(lead_in, "lead_in"), positive_scalar(duration, "duration")
+    rate = finite_scalar(rate, "rate")
+    climb_deg = finite_scalar(climb_deg, "climb_deg")
     if rate == 0 or not abs(climb_deg) < 90:
         raise ValueError(f"rate must be non-zero (rad/s) and |climb_deg| < 90, got rate={rate!r}, climb_deg={climb_deg!r}")
     g = np.deg2rad(climb_deg)
@@ -560,7 +551,7 @@ def drive(segments, dt: float, start) -> tuple[np.ndarray, np.ndarray]:
 
     Returns ``(poses (T, 3), controls (T, 2))`` with ``poses[k + 1] = f(poses[k], controls[k])``;
     the last control row repeats the one before (unused by a filter)."""
-    dt = _positive(dt, "dt")
+    dt = positive_scalar(dt, "dt")
     u = []
     for seg in segments:
         duration, v, w = (float(s) for s in seg)
@@ -590,10 +581,9 @@ def ring_landmarks(rng: np.random.Generator, count: int = 12, radius: float = 6.
     """``count`` point landmarks ``(count, 2)`` around a circle of ``radius``: evenly spaced in
     angle with a uniform jitter of ±1/4 spacing, alternately inside and outside the circle by
     ``spread`` ± 0.5 m."""
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    check_rng(rng)
     count = _count(count, "count")
-    radius, spread = _positive(radius, "radius"), _positive(spread, "spread")
+    radius, spread = positive_scalar(radius, "radius"), positive_scalar(spread, "spread")
     ang = 2 * np.pi * (np.arange(count) + rng.uniform(-0.25, 0.25, count)) / count
     rad = radius + spread * np.where(np.arange(count) % 2, 1.0, -1.0) + rng.uniform(-0.5, 0.5, count)
     return np.stack([rad * np.cos(ang), rad * np.sin(ang)], -1)
@@ -631,8 +621,7 @@ def slam_loop(rng: np.random.Generator, landmarks, *, loops: float = 1.0, runs: 
     ``landmarks`` closer than ``max_range`` carry white Gaussian noise of the given standard
     deviations (m/s, rad/s, m, rad). ``runs=N`` draws N independent noise realisations on the
     same true path."""
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    check_rng(rng)
     for name, val in (("sigma_v", sigma_v), ("sigma_omega", sigma_omega), ("sigma_range", sigma_range),
                       ("sigma_bearing", sigma_bearing)):
         if not (np.isfinite(val) and val >= 0):
@@ -642,7 +631,7 @@ def slam_loop(rng: np.random.Generator, landmarks, *, loops: float = 1.0, runs: 
     lm = check_finite(as_float_array(landmarks, "landmarks"), "landmarks")
     if lm.ndim != 2 or lm.shape[1] != 2:
         raise ValueError(f"landmarks must have shape (L, 2), got shape {lm.shape}")
-    loops, radius, speed = _positive(loops, "loops"), _positive(radius, "radius"), _positive(speed, "speed")
+    loops, radius, speed = positive_scalar(loops, "loops"), positive_scalar(radius, "radius"), positive_scalar(speed, "speed")
     runs = _count(runs, "runs", allow_none=True)
     duration = loops * 2 * np.pi * radius / speed
     truth, u = drive([(duration, speed, speed / radius)], dt, (radius, 0.0, np.pi / 2))

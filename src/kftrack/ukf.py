@@ -36,7 +36,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._validate import as_vector, check_covariance
-from .ekf import _angles, _call, _residual, wrap_angle
+from .ekf import _angles, _call, _residual, _wrap_state
 from .kalman import (FilterResult, Update, _batch, _check_sequence, _check_state, _innovation_score, _run_sequence,
                      _sym, _T)
 
@@ -256,9 +256,7 @@ def _ukf_update(x, P, z, h, R, points, x_angles, z_angles) -> Update:
     S = _sym(t.cov + R)
     y = _residual(z, t.mean, z_angles)
     K = _T(np.linalg.solve(S, _T(t.cross)))  # K = Pxz S^{-1}, S symmetric
-    x_post = x + (K @ y[..., None])[..., 0]
-    if x_angles:
-        x_post[..., x_angles] = wrap_angle(x_post[..., x_angles])
+    x_post = _wrap_state(x + (K @ y[..., None])[..., 0], x_angles)
     P_post = _sym(P - K @ S @ _T(K))
     return Update(x_post, P_post, y, S, K, *_innovation_score(y, S))
 

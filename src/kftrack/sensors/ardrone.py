@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._validate import as_float_array, check_finite
+from .._validate import as_float_array, check_finite, check_rng
 from ..datasets import data_dir, data_path
 from ..gaussians import MomentTest, moment_test
 
@@ -443,8 +443,7 @@ def generate_log(experiment: str, rng: np.random.Generator, n: int = SAMPLES) ->
     as float32 bits). Accelerations and rates are rounded to 4 decimals, as the tables.
     """
     _check_experiment(experiment)
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    check_rng(rng)
     if int(n) != n or n < 2:
         raise ValueError(f"n must be an integer >= 2, got {n!r}")
     n = int(n)

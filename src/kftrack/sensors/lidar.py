@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._validate import as_vector, check_finite
+from .._validate import as_vector, check_finite, check_rng
 from ..scanmatch import transform_points
 
 __all__ = ["as_walls", "beam_angles", "ray_cast", "Lidar", "scan_to_points", "sample_walls"]
@@ -131,8 +131,7 @@ class Lidar:
 
     def scan(self, walls, pose, rng: np.random.Generator) -> np.ndarray:
         """Noisy ranges ``(..., B)``: true range plus :math:`N(0, \\sigma_r^2)`; no-returns stay ``inf``."""
-        if not isinstance(rng, np.random.Generator):
-            raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+        check_rng(rng)
         r = self.ranges(walls, pose)
         noisy = r + self.sigma_range * rng.standard_normal(r.shape)
         return np.where(np.isfinite(r), np.maximum(noisy, 0.0), np.inf)

@@ -43,7 +43,7 @@ import numpy as np
 import sympy as sp
 
 from .. import symbolic as sym
-from .._validate import as_float_array, as_vector, check_covariance
+from .._validate import as_float_array, as_vector, check_covariance, check_rng
 from ..ekf import wrap_angle
 
 __all__ = ["polar_measurement", "polar_to_cartesian_expr", "Radar", "RangeBearing", "RangeAzimuthElevation",
@@ -218,8 +218,7 @@ class Radar:
 
     def simulate(self, x, rng: np.random.Generator) -> np.ndarray:
         """Noisy measurements of the states ``x`` ``(..., n)``: ``h(x)`` plus Gaussian noise, angles wrapped."""
-        if not isinstance(rng, np.random.Generator):
-            raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+        check_rng(rng)
         z = self.h(x)
         z = z + rng.standard_normal(z.shape) * np.asarray(self.sigmas)
         z[..., 1:] = wrap_angle(z[..., 1:])
