@@ -8,20 +8,23 @@ STAMP  := $(VENV)/.installed
 RUN    := PYTHONHASHSEED=0 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 NBVAL  := --nbval --nbval-current-env --nbval-sanitize-with tests/nbval_sanitize.cfg
 
-.PHONY: help venv book test unit nbval booktest lab execute clean
+.PHONY: help venv book test unit nbval booktest lab execute clean portability
 
 help:
 	@echo "make book     build the site into _build/html from the executed notebooks"
 	@echo "make test     unit tests, nbval over notebooks/, then the book build (-W)"
 	@echo "make lab      JupyterLab on notebooks/"
 	@echo "make execute  re-execute every notebook in place (NB=notebooks/02-*.ipynb for one)"
+	@echo "make portability  unit tests + nbval under several OpenBLAS/NumPy SIMD kernels (UNIT_ONLY=1)"
 	@echo "make clean    remove _build/ and caches (keeps .venv)"
 
 # (Re)create the virtual environment when it is missing or older than the requirements.
-$(STAMP): requirements.txt constraints.txt pyproject.toml
+# The site's JavaScript (require.js, the widget manager) comes pinned from npm: book/_js.
+$(STAMP): requirements.txt constraints.txt pyproject.toml book/_js/package-lock.json
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -r requirements.txt
+	cd book/_js && npm ci --no-audit --no-fund --ignore-scripts --loglevel=error
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -40,6 +43,11 @@ booktest: $(STAMP)
 	$(RUN) $(BIN)/python -m pytest -q tests/book
 
 test: unit nbval booktest
+
+# Developer check, not part of `make test`: unit tests and nbval under the OpenBLAS kernels
+# Haswell, Sandybridge, Zen, SkylakeX and with NumPy's SIMD dispatch reduced (UNIT_ONLY=1: unit only).
+portability: $(STAMP)
+	PY=$(BIN)/python tests/portability.sh $(if $(UNIT_ONLY),--unit-only,)
 
 lab: $(STAMP)
 	$(RUN) $(BIN)/jupyter lab notebooks

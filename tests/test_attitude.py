@@ -209,3 +209,22 @@ def test_bad_input():
         at.simulate_imu(np.random.default_rng(0), np.zeros((2, 3)), np.zeros(2), np.zeros(2), gyro_var=-1.0)
     with pytest.raises(ValueError, match=r"^alt_var must"):
         at.simulate_height_sensors(np.random.default_rng(0), np.ones(3), np.zeros(3), alt_var=-1e-4)
+
+
+def test_density_from_variance_and_scale_invariance():
+    # a per-sample variance sigma2 at dt is the density sigma2 * dt
+    assert at.density_from_variance(4e-3, 0.01) == pytest.approx(4e-5, rel=1e-15)
+    np.testing.assert_allclose(at.density_from_variance(np.array([1.0, 2.0]), 0.5), [0.5, 1.0], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="dt"):
+        at.density_from_variance(1.0, 0.0)
+    with pytest.raises(ValueError, match="dt"):
+        at.sampled_filter(at.kinematic_model(1), [[1.0]], [[1.0]], -0.01)
+    # scaling both densities by the same factor leaves the sampled gain unchanged: reading the
+    # study's variances as densities or as per-sample variances changes P, not the estimates of
+    # a filter whose q and r are both sensor noises (round-off bound: a few eps x cond ~ 1e-12)
+    m = at.kinematic_model(1, bias=True)
+    q, r = np.diag([8.3922e-4, 1e-4]), np.array([[0.2431]])
+    dt = 0.01
+    K1 = at.sampled_filter(m, q, r, dt).K
+    K2 = at.sampled_filter(m, at.density_from_variance(q, dt), at.density_from_variance(r, dt), dt).K
+    np.testing.assert_allclose(K2, K1, rtol=1e-9, atol=0)

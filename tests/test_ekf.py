@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scipy import stats
 
 from kftrack import ekf, kalman
-from kftrack.kalman import _mv
+from kftrack.kernels import mv as _mv
 
 
 def random_spd(rng, n, scale=1.0):
@@ -192,3 +192,36 @@ def test_bad_input_names_the_argument():
         ekf.simulate_additive_gaussian(f, h, x, P, np.eye(2), np.eye(2), 3, rng=0)
     with pytest.raises(ValueError, match="steps"):
         ekf.simulate_additive_gaussian(f, h, x, P, np.eye(2), np.eye(2), 0, np.random.default_rng(0))
+
+
+def test_linear_measurement_matrix_is_the_kalman_update_exactly():
+    rng = np.random.default_rng(11)
+    n, m, N = 4, 2, 5
+    H, R = rng.normal(size=(m, n)), random_spd(rng, m)
+    x, P, z = rng.normal(size=(N, n)), random_spd(rng, n), rng.normal(size=(N, m))
+    ref = kalman.update(x, P, z, H, R)
+    u = ekf.ekf_update(x, P, z, H, None, R)  # h given as the (m, n) matrix H, H_jac None
+    for name, a, b in zip(ref._fields, ref, u):
+        assert np.array_equal(a, np.broadcast_to(b, np.shape(a))), name
+    # the whole-sequence filter too
+    F = np.eye(n) + 0.2 * rng.normal(size=(n, n))
+    Q, x0, P0 = random_spd(rng, n, 0.1), rng.normal(size=n), random_spd(rng, n)
+    f, Fj, h, _ = linear(F, H)
+    _, zs = ekf.simulate_additive_gaussian(f, h, x0, P0, Q, R, 12, rng, runs=N)
+    kf = kalman.kalman_filter(zs, x0, P0, F, Q, H, R)
+    ek = ekf.extended_kalman_filter(zs, x0, P0, f, Fj, Q, H, None, R)
+    for name, a, b in zip(kf._fields, kf, ek):
+        assert np.array_equal(a, b, equal_nan=True), name
+
+
+def test_linear_measurement_matrix_bad_input():
+    rng = np.random.default_rng(12)
+    H, R, x, P, z = rng.normal(size=(2, 4)), np.eye(2), np.zeros(4), np.eye(4), np.zeros(2)
+    with pytest.raises(ValueError, match="H_jac must be None when h is a matrix"):
+        ekf.ekf_update(x, P, z, H, lambda s: H, R)
+    with pytest.raises(ValueError, match=r"h must have shape \(\.\.\., 2, 4\)"):
+        ekf.ekf_update(x, P, z, H[:, :3], None, R)
+    with pytest.raises(ValueError, match="H_jac must be a callable"):
+        ekf.ekf_update(x, P, z, lambda s: _mv(H, s), None, R)
+    with pytest.raises(ValueError, match="h as a linear measurement matrix must have shape"):
+        ekf.ekf_update(x, P, z, np.stack([H, H]), None, R)

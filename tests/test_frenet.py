@@ -221,3 +221,32 @@ def test_bad_inputs_name_the_argument():
         fr.circle_closure(1.0, 0.0)
     E = fr.initial_frame((0.0, 0.0, 5.0), up=(1.0, 0.0, 0.0))  # vertical start: frame0 needs no `up`
     assert fr.simulate([fr.Segment(10.0, 0.1)], 1.0, v0=(0.0, 0.0, 5.0), frame0=E).r.shape == (3, 3)
+
+
+def test_euler_endpoint_error_is_first_order_on_an_arc():
+    # one arc of 1 rad (study 000's demo 1): error = (ds/2)|t(L) - t(0)| + O(ds^2), with the
+    # O(ds^2) part at most ds^2 (kappa^3 L^2 / 6 + kappa |n(L) - n(0)| / 24) (heading deficit
+    # (kappa ds)^3 / 3 per step, accumulated; midpoint-rule remainder)
+    segs = fr.segments_from_radii([100.0], [100.0])
+    kappa, L = 0.01, 100.0
+    for ds in (2.0, 1.0, 0.5, 0.25):
+        err, lead = fr.euler_endpoint_error(segs, ds)
+        assert lead == pytest.approx(ds * np.sin(kappa * L / 2), rel=1e-12)
+        assert abs(err - lead) <= ds**2 * (kappa**3 * L**2 / 6 + kappa * 2 * np.sin(kappa * L / 2) / 24)
+
+
+def test_euler_endpoint_error_checks_ds():
+    with pytest.raises(ValueError, match="ds"):
+        fr.euler_endpoint_error(fr.segments_from_radii([100.0], [100.0]), -1.0)
+
+
+def test_simulate_refuses_dt_longer_than_a_segment():
+    from kftrack import frenet as fr_
+
+    segs = [fr_.Segment(100.0, 0.0, 0.0), fr_.Segment(20.0, 0.01, 0.0), fr_.Segment(100.0, 0.0, 0.0)]
+    # at 10 m/s the middle segment lasts 2 s: dt = 2 samples it, dt = 2.5 could skip it
+    assert len(fr_.simulate(segs, 2.0, v0=(10.0, 0.0, 0.0)).t) == 12
+    with pytest.raises(ValueError, match=r"dt must be at most the duration of every segment.*dt = 2.5 s.*segment 1 lasts 2 s"):
+        fr_.simulate(segs, 2.5, v0=(10.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="dt must be at most"):  # dt longer than the whole track: one sample
+        fr_.simulate([fr_.Segment(10.0, 0.0, 0.0)], 30.0)

@@ -203,3 +203,61 @@ def test_moment_test_detects_a_wrong_variance_and_a_wrong_mean():
 def test_bad_input_names_the_argument(call, name):
     with pytest.raises(ValueError, match=name.replace("+", r"\+")):
         call()
+
+
+def test_mahalanobis_and_ellipse_mass():
+    from kftrack.gaussians import ellipse_mass, mahalanobis2
+    cov = np.array([[4.0, 1.0], [1.0, 2.0]])
+    x, mu = np.array([1.0, -2.0]), np.array([0.5, 0.5])
+    d = x - mu
+    # 2x2 SPD solve: relative error a few eps times cond(cov) ~ 3
+    assert np.isclose(mahalanobis2(x, mu, cov), d @ np.linalg.solve(cov, d), rtol=1e-13)
+    assert np.isclose(ellipse_mass(2.0, 2), 1 - np.exp(-2.0), rtol=1e-14)
+    assert np.isclose(ellipse_mass(1.96, 1), 0.95, atol=5e-5)
+    with pytest.raises(ValueError, match="nsigma"):
+        ellipse_mass(-1.0)
+    with pytest.raises(ValueError, match="dim"):
+        ellipse_mass(2.0, 0)
+
+
+def test_ellipse_mass_monte_carlo():
+    # binomial bound, two-sided 99.9 %: the fraction of 2-D Gaussian draws inside the 2-sigma ellipse
+    from kftrack.gaussians import ellipse_mass, mahalanobis2
+    rng = np.random.default_rng(7)
+    cov = np.array([[4.0, 1.5], [1.5, 1.0]])
+    n = 20000
+    x = rng.multivariate_normal([1.0, 2.0], cov, size=n)
+    inside = int(np.sum(mahalanobis2(x, [1.0, 2.0], cov) <= 4.0))
+    p = float(ellipse_mass(2.0, 2))
+    lo, hi = stats.binom.ppf([0.0005, 0.9995], n, p)
+    assert lo <= inside <= hi
+
+
+def test_allan_deviation_white_noise_law():
+    # white rate noise: E[avar] = sigma^2 / m exactly; edf * avar / E ~ chi2(edf) (two-moment
+    # approximation); test every tau at a Bonferroni two-sided 99.9 % level, and check the
+    # exact mean with many replicates (normal bound on the mean of 400 Allan variances)
+    from kftrack.gaussians import allan_deviation
+    rng = np.random.default_rng(11)
+    sigma, dt = 0.03, 0.01
+    y = sigma * rng.standard_normal(100_000)
+    ms = np.array([1, 4, 16, 64, 256, 1024])
+    ad = allan_deviation(y, dt, ms)
+    np.testing.assert_allclose(ad.tau, ms * dt)
+    expected = sigma**2 / ms  # = N^2 / tau with N^2 = sigma^2 dt
+    stat = ad.edf * ad.adev**2 / expected
+    a = 0.001 / ms.size
+    assert np.all(stats.chi2.ppf(a / 2, ad.edf) <= stat) and np.all(stat <= stats.chi2.ppf(1 - a / 2, ad.edf))
+    reps = np.array([allan_deviation(sigma * rng.standard_normal(64), dt, 8).adev[0] ** 2 for _ in range(400)])
+    se = reps.std(ddof=1) / np.sqrt(reps.size)
+    assert abs(reps.mean() - sigma**2 / 8) <= stats.norm.ppf(1 - 0.0005) * se
+
+
+def test_allan_deviation_rejects_bad_input():
+    from kftrack.gaussians import allan_deviation
+    with pytest.raises(ValueError, match="m must"):
+        allan_deviation(np.ones(10), 0.1, 6)
+    with pytest.raises(ValueError, match="dt"):
+        allan_deviation(np.ones(10), 0.0, 2)
+    with pytest.raises(ValueError, match="m must"):
+        allan_deviation(np.ones(10), 0.1, 1.5)

@@ -447,7 +447,7 @@ def test_imm_beats_both_single_model_filters_on_a_turning_track():
     bank = imm.IMM([imm.KalmanMode(lo, R), imm.KalmanMode(turn, R)], imm.SojournTransition([20.0, 20.0]), [0.5, 0.5])
 
     def per_run(xe):
-        return metrics.rmse(xe[5:, :, [0, 2]], pos[5:, None], axis=0, vector=True)
+        return metrics.rmse(pos[5:, None], xe[5:, :, [0, 2]], axis=0, vector=True)
 
     e_imm = per_run(imm.imm_filter(bank, zs, x0, P0, DT).x)
     for m in (lo, turn, hi):
@@ -573,3 +573,61 @@ def test_progress_bar_does_not_change_the_result():
                        progress=True)
     for u, v in zip(a, b):
         np.testing.assert_array_equal(u, v)
+
+
+def test_from_modes_builds_a_consistent_state_equal_to_mix_gaussians():
+    rng = np.random.default_rng(5)
+    cv = models.ConstantVelocity(ndim=2, q=1.0)
+    est = imm.IMM([imm.KalmanMode(cv, np.eye(2)), imm.KalmanMode(models.ConstantVelocity(ndim=2, q=30.0), np.eye(2))],
+                  np.array([[0.95, 0.05], [0.1, 0.9]]), [0.5, 0.5])
+    xs = [rng.normal(size=(3, 4)), rng.normal(size=(3, 4))]
+    A = rng.normal(size=(2, 3, 4, 4))
+    Ps = [A[i] @ np.swapaxes(A[i], -1, -2) + np.eye(4) for i in range(2)]
+    mu = np.array([0.3, 0.7])
+    s = est.from_modes(xs, Ps, mu)
+    x_ref, P_ref = imm.mix_gaussians(mu, np.stack(xs), np.stack(Ps))
+    np.testing.assert_array_equal(s.x, x_ref)  # the same moment-matching kernel, bit for bit
+    np.testing.assert_array_equal(s.P, P_ref)
+    np.testing.assert_array_equal(s.mu, np.broadcast_to(mu, (3, 2)))
+    np.testing.assert_array_equal(s.log_mu, np.log(np.broadcast_to(mu, (3, 2))))
+    assert np.isnan(s.loglik).all() and s.loglik.shape == (3, 2)
+    for a, b in zip(s.xs, xs):
+        np.testing.assert_array_equal(a, b)
+    # the state runs: one predict/update from it equals one from the same state built by hand
+    z = rng.normal(size=(3, 2))
+    s1 = est.update(est.predict(s, 1.0), z)
+    assert s1.x.shape == (3, 4) and np.allclose(s1.mu.sum(-1), 1.0)
+    # mixed dimensions: a CV mode (4) with a coordinated turn (5), completed by unbiased mixing
+    ct = models.CoordinatedTurn(sigma2=1.0, sigma2_omega=1e-4)
+    est2 = imm.IMM([imm.KalmanMode(cv, np.eye(2)), imm.EKFMode(ct, np.eye(2))], np.eye(2), [0.5, 0.5])
+    s2 = est2.from_modes([xs[0][0], np.append(xs[1][0], 0.1)], [Ps[0][0], np.diag([1.0, 2, 3, 4, 0.01])], [0.5, 0.5])
+    full = np.append(xs[0][0], 0.1)
+    np.testing.assert_allclose(s2.x, 0.5 * full + 0.5 * np.append(xs[1][0], 0.1), rtol=1e-15)
+
+
+def test_from_modes_bad_input_names_the_argument():
+    cv = models.ConstantVelocity(ndim=2, q=1.0)
+    est = imm.IMM([imm.KalmanMode(cv, np.eye(2))] * 2, np.eye(2), [0.5, 0.5])
+    x, P = np.zeros(4), np.eye(4)
+    with pytest.raises(ValueError, match="one estimate per mode"):
+        est.from_modes([x], [P], [0.5, 0.5])
+    with pytest.raises(ValueError, match=r"xs\[1\] must have shape"):
+        est.from_modes([x, np.zeros(5)], [P, P], [0.5, 0.5])
+    with pytest.raises(ValueError, match=r"Ps\[0\] must be positive semi-definite"):
+        est.from_modes([x, x], [-P, P], [0.5, 0.5])
+    with pytest.raises(ValueError, match="mu must sum to 1"):
+        est.from_modes([x, x], [P, P], [0.5, 0.6])
+    with pytest.raises(ValueError, match="batch axes do not broadcast"):
+        est.from_modes([np.zeros((3, 4)), np.zeros((2, 4))], [P, P], [0.5, 0.5])
+
+
+def test_ekf_and_ukf_modes_take_a_linear_measurement_matrix_as_h():
+    ct = models.CoordinatedTurn(sigma2=1.0, sigma2_omega=1e-4)
+    H = ct.H
+    x, P, z = np.array([0.0, 10.0, 0.0, 5.0, 0.02]), np.diag([10.0, 4.0, 10.0, 4.0, 1e-3]), np.array([1.0, -2.0])
+    for cls in (imm.EKFMode, imm.UKFMode):
+        a, b = cls(ct, np.eye(2), h=H), cls(ct, np.eye(2), H=H)
+        for name, p, q in zip(a.update(x, P, z)._fields, a.update(x, P, z), b.update(x, P, z)):
+            assert np.array_equal(p, q), (cls.__name__, name)
+    with pytest.raises(ValueError, match="H_jac must be None when h is an"):
+        imm.EKFMode(ct, np.eye(2), h=H, H_jac=lambda s: H)

@@ -25,10 +25,16 @@ def _polar_mode(model, **kw):
 # --------------------------------------------------------------------------------------------
 # EKFMode with a state-dependent Q
 # --------------------------------------------------------------------------------------------
-def test_state_dependent_q_is_detected_from_the_signature():
+def test_state_dependent_q_is_read_from_the_model_attribute():
+    assert models.Turn3DAngles.state_dependent_noise is True
     assert _polar_mode(CT).state_dependent_Q
     assert not _polar_mode(models.ConstantVelocity(ndim=3, sigma2=1.0)).state_dependent_Q
     assert not imm.EKFMode(models.CoordinatedTurn(q=1.0, q_omega=1e-4), np.eye(2)).state_dependent_Q
+    for cls in (models.ConstantVelocity, models.ConstantAcceleration, models.Singer, models.KnownTurn,
+                models.CoordinatedTurn, models.CoordinatedTurnPolar, models.Turn3D):
+        assert cls.state_dependent_noise is False, cls
+    with pytest.raises(TypeError, match="state_dependent_Q"):
+        _polar_mode(CT, state_dependent_Q="yes")
 
 
 def test_ekf_mode_predict_uses_q_at_the_estimate_exactly():
@@ -42,7 +48,7 @@ def test_ekf_mode_predict_uses_q_at_the_estimate_exactly():
     assert not np.allclose(CT.Q(xb[0], T), CT.Q(xb[1], T))  # the test can tell the two Qs apart
 
 
-def test_explicit_flag_overrides_detection():
+def test_explicit_flag_overrides_the_model_attribute():
     class Stub:
         n = 2
         H = np.eye(2)
@@ -56,8 +62,14 @@ def test_explicit_flag_overrides_detection():
         def Q(self, *args):  # signature hides whether the state is passed
             return np.eye(2) * (args[0][..., :1, None] ** 2 if len(args) == 2 else 1.0)
 
+    class StateStub(Stub):
+        state_dependent_noise = True
+
     x, P = np.array([3.0, 0.0]), np.eye(2)
-    assert not imm.EKFMode(Stub(), np.eye(2)).state_dependent_Q
+    assert not imm.EKFMode(Stub(), np.eye(2)).state_dependent_Q  # no attribute: Q(dt)
+    assert imm.EKFMode(StateStub(), np.eye(2)).state_dependent_Q
+    np.testing.assert_array_equal(imm.EKFMode(StateStub(), np.eye(2)).predict(x, P, 1.0)[1], 10.0 * np.eye(2))
+    assert not imm.EKFMode(StateStub(), np.eye(2), state_dependent_Q=False).state_dependent_Q
     _, P_dt = imm.EKFMode(Stub(), np.eye(2)).predict(x, P, 1.0)
     _, P_x = imm.EKFMode(Stub(), np.eye(2), state_dependent_Q=True).predict(x, P, 1.0)
     np.testing.assert_array_equal(P_dt, 2.0 * np.eye(2))
@@ -117,7 +129,7 @@ def test_a_single_early_error_counts_more_than_a_late_one():
 def test_running_rms_laws(e):
     r = metrics.running_rms(e)
     # the last running RMS is the RMSE of the whole span; constant errors give |e|; bounded by max |e|
-    np.testing.assert_allclose(r[-1], metrics.rmse(e, np.zeros_like(e), axis=0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(r[-1], metrics.rmse(np.zeros_like(e), e, axis=0), rtol=1e-12, atol=1e-12)
     assert np.all(r <= np.abs(e).max(axis=0) * (1 + 1e-12) + 1e-12)
     c = np.broadcast_to(e[:1], e.shape)
     np.testing.assert_allclose(metrics.running_rms(c), np.abs(c), rtol=1e-12, atol=1e-12)

@@ -11,10 +11,11 @@ from kftrack import metrics
 def test_rmse_scalar_and_vector():
     est = np.array([[1.0, 2.0], [3.0, 4.0]])
     tru = np.zeros((2, 2))
-    assert metrics.rmse(est, tru) == pytest.approx(np.sqrt((1 + 4 + 9 + 16) / 4))
-    assert metrics.rmse(est, tru, vector=True) == pytest.approx(np.sqrt((5 + 25) / 2))
-    np.testing.assert_allclose(metrics.rmse(est, tru, axis=0), np.sqrt([5.0, 10.0]))
-    with pytest.raises(ValueError, match="estimate and truth must have matching shapes"):
+    assert metrics.rmse(tru, est) == pytest.approx(np.sqrt((1 + 4 + 9 + 16) / 4))
+    assert metrics.rmse(tru, est, vector=True) == pytest.approx(np.sqrt((5 + 25) / 2))
+    np.testing.assert_allclose(metrics.rmse(tru, est, axis=0), np.sqrt([5.0, 10.0]))
+    assert metrics.rmse(truth=tru, estimate=est) == metrics.rmse(est, tru)  # (truth, estimate); symmetric
+    with pytest.raises(ValueError, match="truth and estimate must have matching shapes"):
         metrics.rmse(np.zeros(3), np.zeros(2))
 
 
@@ -89,5 +90,19 @@ def test_anees_and_rmse_refuse_values_that_cannot_be_right():
     with pytest.raises(ValueError, match="nees_values must be non-negative and finite"):
         metrics.anees(np.array([1.0, np.inf]), 1)
     with pytest.raises(TypeError, match="estimate must be an array of real numbers"):
-        metrics.rmse(np.array([1.0 + 1j]), np.zeros(1))
+        metrics.rmse(np.zeros(1), np.array([1.0 + 1j]))
     assert np.isnan(metrics.anees(np.array([1.0, np.nan]), 1))  # a missing value stays visible
+
+
+def test_consistency_refuses_a_transposed_array_when_told_the_runs():
+    rng = np.random.default_rng(3)
+    v = rng.chisquare(2, size=(30, 50))  # T = 30 steps, N = 50 runs
+    c = metrics.consistency(v, 2, runs=50)
+    assert c.runs == 50 and c.steps == 30 and np.array_equal(c.mean, metrics.consistency(v, 2).mean)
+    with pytest.raises(ValueError, match=r"values must have shape \(T, N\) = \(T, 50\).*transposed, \(N, T\): pass values.T"):
+        metrics.consistency(v.T, 2, runs=50)
+    with pytest.raises(ValueError, match=r"values must have shape \(T, N\) = \(T, 40\)"):
+        metrics.consistency(v, 2, runs=40)
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="runs must be a positive integer"):
+            metrics.consistency(v, 2, runs=bad)

@@ -7,6 +7,7 @@ once and cached."""
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 import pytest
 from filterpy.common import Q_continuous_white_noise, Q_discrete_white_noise
 from hypothesis import given, settings
@@ -22,6 +23,38 @@ RNG = np.random.default_rng(20261122)
 
 def rel(a, b):
     return np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300)
+
+
+def van_loan_bounds(A, G, Qc, dt):
+    """Absolute round-off bounds ``(bF, bQ)`` on ``max|F - F_exact|`` and ``max|Q - Q_exact|`` of
+    :func:`kftrack.models.van_loan`, from size x condition x eps.
+
+    Van Loan's block matrix ``M dt`` (size ``m = 2n``) is exponentiated by scaling and squaring
+    (scipy.linalg.expm, Al-Mohy & Higham 2009), backward stable in practice: the computed ``E`` is
+    ``exp(M dt + dM)`` with ``|dM|_F <= m eps |M dt|_F``. Then, to first order,
+    ``|dE|_F <= kappa_exp(M dt) m eps |E|_F`` with ``kappa_exp`` the relative condition number of the
+    exponential (``scipy.linalg.expm_cond``; it grows with ``|M dt|`` and with the squarings that a
+    large ``dt`` needs). ``F = E22^T`` inherits ``|dE|_F``; ``Q = F E12`` adds the product's error
+    ``|F|_F |dE|_F + |dE|_F |E12|_F + n eps |F|_F |E12|_F``. The closed forms compared with add their
+    own rounding, at most 4 eps of their largest entry per entry (a few operations each), added
+    by the callers. A wrong entry (``T^2/3`` for ``T^2/2``) is off by O(1) relative, far above.
+    """
+    A = np.asarray(A, float)
+    n = A.shape[0]
+    Mm = np.zeros((2 * n, 2 * n))
+    Mm[:n, :n], Mm[:n, n:], Mm[n:, n:] = -A, G @ np.asarray(Qc, float) @ G.T, A.T
+    Mm = Mm * dt
+    E = scipy.linalg.expm(Mm)
+    dE = scipy.linalg.expm_cond(Mm) * 2 * n * EPS * np.linalg.norm(E)
+    nF, nE12 = np.linalg.norm(E[n:, n:]), np.linalg.norm(E[:n, n:])
+    return dE, nF * dE + dE * nE12 + n * EPS * nF * nE12
+
+
+def assert_van_loan(model_F, model_Q, F, Q, A, G, Qc, dt):
+    """Closed-form ``model_F``, ``model_Q`` against Van Loan's ``F``, ``Q`` within :func:`van_loan_bounds`."""
+    bF, bQ = van_loan_bounds(A, G, Qc, dt)
+    assert np.max(np.abs(model_F - F)) <= bF + 4 * EPS * np.max(np.abs(model_F)), (dt, np.max(np.abs(model_F - F)), bF)
+    assert np.max(np.abs(model_Q - Q)) <= bQ + 4 * EPS * np.max(np.abs(model_Q)), (dt, np.max(np.abs(model_Q - Q)), bQ)
 
 
 def jac_fd(f, x, h):
@@ -64,22 +97,24 @@ def test_cv_ca_against_filterpy(ndim):
 
 def test_per_axis_noise_and_van_loan():
     cv = M.ConstantVelocity(ndim=2, q=[1.0, 4.0])
-    F, Q = M.van_loan(A_CV, np.array([[0.0], [1.0]]), [[4.0]], 3.0)
-    assert rel(cv.Q(3.0)[2:, 2:], Q) < 10 * EPS and rel(cv.F(3.0)[2:, 2:], F) < 10 * EPS
+    G2 = np.array([[0.0], [1.0]])
+    F, Q = M.van_loan(A_CV, G2, [[4.0]], 3.0)
+    assert_van_loan(cv.F(3.0)[2:, 2:], cv.Q(3.0)[2:, 2:], F, Q, A_CV, G2, [[4.0]], 3.0)
+    G3 = np.array([[0.0], [0.0], [1.0]])
+    ca = M.ConstantAcceleration(q=1.0)
     for dt in RNG.uniform(0.01, 20, 5):
-        F, Q = M.van_loan(A_CA, np.array([[0.0], [0.0], [1.0]]), [[1.0]], dt)
-        ca = M.ConstantAcceleration(q=1.0)
-        assert rel(ca.F(dt), F) < 100 * EPS and rel(ca.Q(dt), Q) < 1e3 * EPS
+        F, Q = M.van_loan(A_CA, G3, [[1.0]], dt)
+        assert_van_loan(ca.F(dt), ca.Q(dt), F, Q, A_CA, G3, [[1.0]], dt)
 
 
 def test_singer_against_van_loan():
     for tau, dt in zip(RNG.uniform(0.5, 60, 8), RNG.uniform(0.05, 20, 8)):
         al = 1 / tau
         A = np.array([[0, 1, 0], [0, 0, 1], [0, 0, -al]])
-        F, Q = M.van_loan(A, np.array([[0.0], [0.0], [1.0]]), [[2.0]], dt)
+        G3 = np.array([[0.0], [0.0], [1.0]])
+        F, Q = M.van_loan(A, G3, [[2.0]], dt)
         s = M.Singer(tau=tau, q=2.0)
-        assert rel(s.F(dt), F) < 1e3 * EPS
-        assert rel(s.Q(dt), Q) < 1e4 * EPS
+        assert_van_loan(s.F(dt), s.Q(dt), F, Q, A, G3, [[2.0]], dt)
     s = M.Singer(tau=10.0, ndim=2, sigma2_a=3.0)
     assert s.q == (0.6, 0.6)
     assert M.singer_acceleration_variance(3.0, 0.1, 0.2) == pytest.approx(3.0 * 1.2)
@@ -135,9 +170,10 @@ def test_known_turn_exact_noise_reference_values():
 @pytest.mark.parametrize("omega", [-0.7, -0.05, 0.01, 0.3, 1.3])
 def test_known_turn_against_van_loan(omega):
     for dt in (0.1, 1.0, 4.0):
-        F, Q = M.van_loan(a_turn(omega), np.array([[0, 0], [1, 0], [0, 0], [0, 1.0]]), 2.5 * np.eye(2), dt)
+        G = np.array([[0, 0], [1, 0], [0, 0], [0, 1.0]])
+        F, Q = M.van_loan(a_turn(omega), G, 2.5 * np.eye(2), dt)
         kt = M.KnownTurn(omega=omega, q=2.5)
-        assert rel(kt.F(dt), F) < 100 * EPS and rel(kt.Q(dt), Q) < 1e3 * EPS
+        assert_van_loan(kt.F(dt), kt.Q(dt), F, Q, a_turn(omega), G, 2.5 * np.eye(2), dt)
     kt3 = M.KnownTurn(omega=omega, ndim=3, q=2.5)
     assert np.array_equal(kt3.F(2.0)[:4, :4], M.KnownTurn(omega=omega, q=2.5).F(2.0))
     assert np.array_equal(kt3.Q(2.0)[4:, 4:], M.ConstantVelocity(q=2.5).Q(2.0))
@@ -216,7 +252,7 @@ def test_ct_across_switch_and_inverse_and_speed():
     x = np.array([1.0, 30.0, 2.0, -40.0, 0.0])
     x[4] = 0.3
     assert np.allclose(CT2.f(CT2.f(x, 2.0), -2.0), x, rtol=0, atol=1e-12 * 50)
-    assert np.allclose(CT2.F(2.0, x) @ x, CT2.f(x, 2.0), rtol=4 * EPS)
+    assert np.allclose(CT2.F(x, 2.0) @ x, CT2.f(x, 2.0), rtol=4 * EPS)
     y = x
     for _ in range(500):
         y = CT2.f(y, 0.7)
@@ -390,9 +426,10 @@ def test_stone_soup_at_the_singular_points_where_it_fails():
             sg = ss.Singer(noise_diff_coeff=1.0, damping_coeff=al)
             F_ss, Q_ss = sg.matrix(time_interval=five), sg.covar(time_interval=five)
         A = np.array([[0, 1, 0], [0, 0, 1], [0, 0, -al]])
-        F_vl, Q_vl = M.van_loan(A, np.array([[0.0], [0.0], [1.0]]), [[1.0]], 5.0)
+        G3 = np.array([[0.0], [0.0], [1.0]])
+        F_vl, Q_vl = M.van_loan(A, G3, [[1.0]], 5.0)
         ours = M.Singer(tau=1 / al, q=1.0)
-        assert rel(ours.F(5.0), F_vl) < 16 * EPS and rel(ours.Q(5.0), Q_vl) < 64 * EPS
+        assert_van_loan(ours.F(5.0), ours.Q(5.0), F_vl, Q_vl, A, G3, [[1.0]], 5.0)
         assert abs(F_ss[0, 2] - 12.5) > 0.4 and abs(Q_ss[0, 0] - 156.25) > 40  # Stone Soup: 12 or 128, 200 or 31953
     # ConstantTurn's finite-difference Jacobian at omega = 0 and 1e-7: the position rows of the
     # omega-column are 0, then 10 % short; the exact column is [-T^2 vy/2, -T vy, T^2 vx/2, T vx]
@@ -500,7 +537,7 @@ def test_generated_once_and_cached(monkeypatch):
     def calls():
         x5 = np.array([1.0, 20.0, 2.0, -10.0, 0.1])
         for m in _models(0.1, 5.0) + [M.Singer(tau=np.inf, q=1.0), M.KnownTurn(omega=0.0, q=1.0)]:
-            m.F(1.0) if not isinstance(m, M.CoordinatedTurn) else m.F(1.0, np.zeros(m.n))
+            m.F(1.0) if not isinstance(m, M.CoordinatedTurn) else m.F(np.zeros(m.n), 1.0)
             m.Q(1.0)
             m.f(np.ones(m.n), 1.0)
             m.jacobian(np.ones(m.n), 1.0)

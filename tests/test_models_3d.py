@@ -128,7 +128,8 @@ def test_paper_F_and_Gamma_as_printed(wc, wg, T):
 
 def test_forms_agree_without_path_angle_rate():
     x = _state(0.07, 0.0)
-    np.testing.assert_allclose(M.Turn3DAngles(form="paper").f(x, 4.0), M.Turn3DAngles().f(x, 4.0), rtol=1e-13)
+    np.testing.assert_allclose(M.Turn3DAngles(form="paper", sigma2=0.0, sigma2_omega=0.0).f(x, 4.0),
+                               M.Turn3DAngles(sigma2=0.0, sigma2_omega=0.0).f(x, 4.0), rtol=1e-13)
 
 
 def test_exact_transition_against_ode_and_group_law():
@@ -153,7 +154,7 @@ def test_exact_transition_against_ode_and_group_law():
 
 
 def _local_errors(method, x, T):
-    m = M.Turn3DAngles(form="paper" if method == "paper" else "nonsingular")
+    m = M.Turn3DAngles(form="paper" if method == "paper" else "nonsingular", sigma2=0.0, sigma2_omega=0.0)
     step = m.f_taylor_exact if method == "taylor_exact" else m.f
     d = step(x, T) - M.Turn3DAngles.f_exact(x, T)
     return np.linalg.norm(d[[0, 2, 4]]), np.linalg.norm(d[[1, 3, 5]])
@@ -200,7 +201,7 @@ def test_turn3d_one_step_error_on_a_helix_is_the_missing_jerk():
 
 
 def test_seed001_one_step_claims_c14_c15():
-    paper, nons = M.Turn3DAngles(form="paper"), M.Turn3DAngles()
+    paper, nons = M.Turn3DAngles(form="paper", sigma2=0.0, sigma2_omega=0.0), M.Turn3DAngles(sigma2=0.0, sigma2_omega=0.0)
     x = _state(0.05, 0.0)
     ex = M.Turn3DAngles.f_exact(x, 4.0)
     assert round(np.linalg.norm((paper.f(x, 4.0) - ex)[[0, 2, 4]]), 1) == 6.6
@@ -215,7 +216,7 @@ def test_seed001_one_step_claims_c14_c15():
 
 
 def test_full_jacobian_and_partial():
-    m = M.Turn3DAngles(form="paper")
+    m = M.Turn3DAngles(form="paper", sigma2=0.0, sigma2_omega=0.0)
     x = _state(0.05, 0.02)
     J = m.jacobian(x, 4.0)
     h = 1e-6 * np.maximum(1.0, np.abs(x))
@@ -230,20 +231,39 @@ def test_full_jacobian_and_partial():
 
 
 def test_paper_form_singular_along_x():
+    paper = M.Turn3DAngles(form="paper", sigma2=1.0, sigma2_omega=1e-4)
+    nons = M.Turn3DAngles(sigma2=1.0, sigma2_omega=1e-4)
     x = _state(0.05, 0.02, chi=1e-9)
     with np.errstate(all="ignore"):
-        assert np.abs(M.Turn3DAngles(form="paper").F(x, 4.0)).max() > 1e6
-    assert np.abs(M.Turn3DAngles().F(x, 4.0)).max() < 10
-    assert M.Turn3DAngles().H.shape == (3, 8)
+        assert np.abs(paper.F(x, 4.0)).max() > 1e6
+    assert np.abs(nons.F(x, 4.0)).max() < 10
+    assert nons.H.shape == (3, 8)
+    # exactly at chi = 0 (and 180 deg) the paper form would return NaN/inf: it raises, naming x and chi
+    for chi, deg in ((0.0, "0"), (np.pi, "180")):
+        x0 = _state(0.05, 0.02, chi=chi)
+        x0[3] = 0.0
+        for fn in (paper.F, paper.f, paper.jacobian, paper.Q):
+            with pytest.raises(ValueError, match=rf"x has v_y = 0, heading chi = {deg} deg.*nonsingular"):
+                fn(x0, 4.0)
+        assert np.all(np.isfinite(nons.F(x0, 4.0))) and np.all(np.isfinite(nons.Q(x0, 4.0)))
+    xb = np.stack([_state(0.05, 0.02), x0])
+    with pytest.raises(ValueError, match=r"x\[1\] has v_y = 0"):
+        paper.f(xb, 4.0)
 
 
 def test_turn3d_angles_bad_input():
     with pytest.raises(ValueError, match="form"):
         M.Turn3DAngles(form="exact")
     with pytest.raises(ValueError, match="x must have shape"):
-        M.Turn3DAngles().f(np.zeros(6), 1.0)
+        M.Turn3DAngles(sigma2=0.0, sigma2_omega=0.0).f(np.zeros(6), 1.0)
     with pytest.raises(ValueError, match="sigma2"):
-        M.Turn3DAngles(sigma2=-1.0)
+        M.Turn3DAngles(sigma2=-1.0, sigma2_omega=0.0)
+    # the noise is required (no silent Q = 0), keyword only
+    for kw in ({}, {"sigma2": 1.0}, {"sigma2_omega": 1e-4}):
+        with pytest.raises(TypeError, match="requires sigma2"):
+            M.Turn3DAngles(**kw)
+    with pytest.raises(TypeError):
+        M.Turn3DAngles("nonsingular", 1.0, 1e-4)
     with pytest.raises(ValueError, match="form"):
         M.turn3d_angles_A("singular")
 

@@ -55,12 +55,12 @@ def test_per_run_error_exact():
     est[:, 0, 0] = 3.0
     est[:, 0, 2] = 4.0  # distance 5 in run 0
     est[:, 1, 1] = 7.0  # only a velocity error in run 1
-    e = mc.per_run_error(est, truth, [0, 2])
+    e = mc.per_run_error(truth, est, [0, 2])
     assert np.allclose(e, [25.0, 0.0])
-    assert np.allclose(mc.per_run_error(est, truth, [0, 2], root=True), [5.0, 0.0])
-    assert np.allclose(mc.per_run_error(est, truth), [25.0, 49.0])
+    assert np.allclose(mc.per_run_error(truth, est, [0, 2], root=True), [5.0, 0.0])
+    assert np.allclose(mc.per_run_error(truth, est), [25.0, 49.0])
     est[0, 0, 0] = 100.0
-    assert np.allclose(mc.per_run_error(est, truth, [0, 2], start=1), [25.0, 0.0])
+    assert np.allclose(mc.per_run_error(truth, est, [0, 2], start=1), [25.0, 0.0])
 
 
 @settings(max_examples=40, deadline=None)
@@ -70,16 +70,18 @@ def test_per_run_error_matches_rmse_squared(T, runs, seed):
 
     rng = np.random.default_rng(seed)
     est, truth = rng.normal(size=(T, runs, 3)), rng.normal(size=(T, 3))
-    e = mc.per_run_error(est, truth, [0, 1])
-    assert np.allclose(e, rmse(est[..., :2], truth[:, None, :2], axis=0, vector=True) ** 2, rtol=1e-12)
+    e = mc.per_run_error(truth, est, [0, 1])
+    assert np.allclose(e, rmse(truth[:, None, :2], est[..., :2], axis=0, vector=True) ** 2, rtol=1e-12)
     assert np.all(e >= 0)
 
 
 @pytest.mark.parametrize("args, word", [
-    ((np.zeros((3, 2, 4)), np.zeros((4, 4))), "time axis"),
-    ((np.zeros((3, 2, 4)), np.zeros((3, 5))), "truth"),
-    ((np.zeros((3, 2, 5)), np.zeros((3, 4)), [4]), "components"),
-    ((np.zeros((3, 2, 4)), np.zeros((3, 4)), [7]), "components"),
+    ((np.zeros((4, 4)), np.zeros((3, 2, 4))), "time axis"),
+    ((np.zeros((3, 5)), np.zeros((3, 2, 4))), "truth"),
+    ((np.zeros((3, 4)), np.zeros((3, 2, 5)), [4]), "components"),
+    ((np.zeros((3, 4)), np.zeros((3, 2, 4)), [7]), "components"),
+    # the old order (estimate, truth): truth with more axes than the estimate is refused
+    ((np.zeros((3, 2, 4)), np.zeros((3, 4))), r"order is per_run_error\(truth, estimate"),
 ])
 def test_per_run_error_bad_input(args, word):
     with pytest.raises(ValueError, match=word):
@@ -88,7 +90,7 @@ def test_per_run_error_bad_input(args, word):
 
 def test_per_run_error_bad_start():
     with pytest.raises(ValueError, match="start"):
-        mc.per_run_error(np.zeros((3, 2, 4)), np.zeros((3, 4)), start=3)
+        mc.per_run_error(np.zeros((3, 4)), np.zeros((3, 2, 4)), start=3)
 
 
 def test_paired_difference_exact_and_null_distribution():
@@ -148,7 +150,7 @@ def test_compare_and_run_filters_on_a_kalman_bank():
 
     est = mc.run_filters({"KF": lambda z: kalman_filter(z, x0, P0, cv.F(dt), cv.Q(dt), cv.H, R), "raw": raw}, zs)
     assert est["KF"].shape == (T, 200, 4)
-    c = mc.compare(est, truth, [0, 2])
+    c = mc.compare(truth, est, [0, 2])
     assert c.paired("KF", "raw").z < -10
     total = c.mean("raw") * c.runs * T / sigma**2  # chi-square with 2 T N dof
     assert stats.chi2.ppf(0.005, 2 * T * c.runs) < total < stats.chi2.ppf(0.995, 2 * T * c.runs)
@@ -160,7 +162,9 @@ def test_run_filters_bad_input():
     with pytest.raises(TypeError, match="filters"):
         mc.run_filters({"a": 3}, np.zeros((2, 1, 1)))
     with pytest.raises(TypeError, match="estimates"):
-        mc.compare([], np.zeros((2, 1)))
+        mc.compare(np.zeros((2, 1)), [])
+    with pytest.raises(TypeError, match=r"order is compare\(truth, estimates"):
+        mc.compare({"KF": np.zeros((2, 1, 1))}, np.zeros((2, 1)))
 
 
 def test_per_run_error_estimate_with_extra_components():
@@ -169,6 +173,6 @@ def test_per_run_error_estimate_with_extra_components():
     est = np.zeros((3, 2, 5))
     est[..., 4] = 9.0  # omega: not in the truth, not compared
     est[:, 1, 2] = 2.0
-    assert np.allclose(mc.per_run_error(est, truth, [0, 2]), [0.0, 4.0])
+    assert np.allclose(mc.per_run_error(truth, est, [0, 2]), [0.0, 4.0])
     with pytest.raises(ValueError, match="truth"):
-        mc.per_run_error(est, truth)
+        mc.per_run_error(truth, est)

@@ -10,7 +10,7 @@ import pytest
 from scipy import stats
 
 from kftrack import ekf, kalman, metrics
-from kftrack.kalman import _mv
+from kftrack.kernels import mv as _mv
 from kftrack.sensors.radar import RangeBearing
 
 
@@ -157,3 +157,24 @@ def test_plot_chi2_band_draws_the_mean_and_the_band():
     assert np.isclose(band.get_y(), c.bounds[0])  # axhspan: a rectangle from lower to upper
     assert np.isclose(band.get_y() + band.get_height(), c.bounds[1])
     plt.close(fig)
+
+
+def test_pcrlb_riccati_form_equals_general_information_recursion_for_linear_dynamics():
+    # Tichavsky et al. (1998): J_{k+1} = D22 - D21 (J_k + D11)^-1 D12 with D11 = F^T Q^-1 F,
+    # D12 = -F^T Q^-1, D22 = Q^-1 + H^T R^-1 H; for a state-independent F it is the Riccati form.
+    rng = np.random.default_rng(8)
+    n, m, T = 4, 2, 12
+    F = rng.normal(size=(n, n))
+    Q, R, P0 = random_spd(rng, n, 0.3), random_spd(rng, m), random_spd(rng, n)
+    Hs = rng.normal(size=(T, m, n))
+    b = metrics.pcrlb(P0, F, Q, Hs, R)
+    Qi = np.linalg.inv(Q)
+    J = np.linalg.inv(P0) + Hs[0].T @ np.linalg.solve(R, Hs[0])
+    for k in range(T - 1):
+        D11, D12 = F.T @ Qi @ F, -F.T @ Qi
+        D22 = Qi + Hs[k + 1].T @ np.linalg.solve(R, Hs[k + 1])
+        assert np.linalg.cond(J + D11) < 1e4  # the premise of the tolerance below
+        J = D22 - D12.T @ np.linalg.solve(J + D11, D12)
+        # relative agreement to round-off: a few products of n x n matrices with condition
+        # numbers below 1e4 here, so 1e4 * n * eps ~ 1e-11 bounds the difference
+        assert np.max(np.abs(J - b.J[k + 1])) < 1e4 * n * np.finfo(float).eps * np.max(np.abs(J))

@@ -61,3 +61,18 @@ def test_data_path(tmp_path, monkeypatch):
     assert datasets.data_path("a.csv") == tmp_path / "a.csv"
     with pytest.raises(FileNotFoundError, match="'missing.csv' not found"):
         datasets.data_path("missing.csv")
+
+
+def test_animation_html_loads_nothing_from_the_network() -> None:
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import FuncAnimation
+
+    from kftrack.plotting import animation_html
+
+    fig, ax = plt.subplots(figsize=(2, 2), dpi=30)
+    (line,) = ax.plot([0, 1], [0, 1])
+    anim = FuncAnimation(fig, lambda i: line.set_ydata([0, i]) or (line,), frames=2)
+    page = animation_html(anim, default_mode="once")
+    plt.close(fig)
+    assert "<script" in page and "font-awesome" not in page and 'class="fa ' not in page
+    assert "\u25b6" in page  # the play button, as a glyph

@@ -268,3 +268,12 @@ def test_bad_input_names_the_argument():
         rd.three_point_velocity_gain(0.0)
     with pytest.raises(ValueError, match="ndim"):
         rd.polar_measurement(4)
+
+
+def test_angle_sigmas_in_degrees_are_refused_with_a_hint():
+    with pytest.raises(ValueError, match=r"sigmas\[1\] is an angle standard deviation in radians.*at most pi.*15.0.*np.deg2rad"):
+        rd.RangeBearing(sigmas=(20, 15))
+    with pytest.raises(ValueError, match=r"sigmas\[2\].*np.deg2rad"):
+        rd.RangeAzimuthElevation(sigmas=(75.0, 0.01, 3.5))
+    assert rd.RangeBearing(sigmas=(20.0, np.pi)).sigmas == (20.0, np.pi)  # pi itself is allowed
+    assert rd.RangeBearing(sigmas=(20.0, np.deg2rad(15))).sigmas[1] == pytest.approx(0.2618, abs=1e-4)

@@ -328,3 +328,42 @@ def test_bad_input_messages():
         steady.discrete_gain([[2.0]], [[0.0]], [[1.0]], [[1.0]])
     with pytest.raises(ValueError, match=r"no stabilizing solution: \(A, C\) must be detectable"):
         steady.continuous_gain([[1.0]], [[0.0]], [[1.0]], [[1.0]])
+
+
+@pytest.mark.parametrize("lam", [0.02, 0.3, 2.0])
+def test_alpha_beta_lag_matches_noise_free_run(lam):
+    # noise-free constant-acceleration truth through the fixed-gain filter: the error settles to
+    # the closed form. |A - KHA| < 1 so after 600 steps the transient is below eps; tolerance
+    # 1e-9 relative covers the O(k eps |x_k|) round-off of the growing state x_k ~ a (kT)^2 / 2.
+    a, b = steady.alpha_beta_gains(lam)
+    T, acc = 0.5, 2.0
+    F = np.array([[1.0, T], [0.0, 1.0]])
+    K = np.array([[a], [b / T]])
+    t = np.arange(600) * T
+    xs = steady.run_steady_filter(F, None, H_POS, None, K, (0.5 * acc * t**2)[:, None], x0=np.zeros(2))
+    ex, ev = steady.alpha_beta_lag(a, b, acc, T)
+    scale = 0.5 * acc * t[-1] ** 2
+    assert abs(xs[-1, 0] - 0.5 * acc * t[-1] ** 2 - ex) <= 1e-9 * scale
+    assert abs(xs[-1, 1] - acc * t[-1] - ev) <= 1e-9 * scale
+    assert ex < 0  # the estimate lags behind
+
+
+def test_alpha_beta_lag_rejects_bad_gains():
+    with pytest.raises(ValueError, match="beta"):
+        steady.alpha_beta_lag(0.5, 0.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="alpha"):
+        steady.alpha_beta_lag(1.5, 0.1, 1.0, 1.0)
+
+
+def test_detectability_versus_observability():
+    A2 = np.array([[0.0, 1.0], [0.0, 0.0]])
+    assert steady.is_detectable(A2, [[1.0, 0.0]]) and not steady.is_detectable(A2, [[0.0, 1.0]])
+    # a stable unobserved mode: not observable (rank 1) but detectable, and the CARE is solvable
+    A = np.diag([0.0, -1.0])
+    assert steady.observability_rank(A, [[1.0, 0.0]]) == 1 and steady.is_detectable(A, [[1.0, 0.0]])
+    steady.continuous_gain(A, [[1.0, 0.0]], np.eye(2), [[1.0]])
+    with pytest.raises(ValueError, match="detectable"):
+        steady.continuous_gain(A2, [[0.0, 1.0]], np.eye(2), [[1.0]])
+    # discrete: |lambda| = 0.5 unobserved is fine, |lambda| = 1 is not
+    assert steady.is_detectable(np.diag([1.0, 0.5]), [[1.0, 0.0]], discrete=True)
+    assert not steady.is_detectable(np.diag([1.0, 0.5]), [[0.0, 1.0]], discrete=True)

@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["as_float_array", "as_vector", "as_matrix", "check_covariance", "check_finite", "check_rng",
-           "finite_scalar", "positive_scalar"]
+           "finite_scalar", "positive_scalar", "broadcast_batch", "check_state", "check_sequence", "check_form",
+           "check_angles", "call_checked", "check_points", "as_measurement_sequence"]
 
 
 def as_float_array(value, name: str) -> np.ndarray:
@@ -135,3 +136,84 @@ def positive_scalar(value, name: str, unit: str = "") -> float:
     if not v > 0:
         raise ValueError(f"{name} must be > 0{f' ({unit})' if unit else ''}, got {value!r}")
     return v
+
+
+# --------------------------------------------------------------------------------------------
+# checks shared by the filters (kalman, ekf, ukf, imm)
+# --------------------------------------------------------------------------------------------
+def broadcast_batch(name_shapes: dict[str, tuple]) -> tuple:
+    """The broadcast of the batch shapes ``{argument: shape}``, or a ``ValueError`` naming them."""
+    try:
+        return np.broadcast_shapes(*name_shapes.values())
+    except ValueError:
+        desc = ", ".join(f"{k} {v}" for k, v in name_shapes.items())
+        raise ValueError(f"batch axes do not broadcast: {desc}; the leading (batch) axes of the arguments "
+                         "must be equal or 1 (NumPy broadcasting), or absent for a shared matrix") from None
+
+
+def check_state(x, P, names: tuple[str, str] = ("x", "P")):
+    """A state ``x`` ``(..., n)`` and its covariance ``P`` ``(..., n, n)``; returns ``(x, P, n)``."""
+    x = as_vector(x, names[0])
+    n = x.shape[-1]
+    P = check_covariance(P, names[1], n, origin=f"n = {n} from {names[0]}")
+    return x, P, n
+
+
+def check_sequence(zs, x0, P0, Q, R):
+    """Boundary checks shared by the whole-sequence filters (KF, EKF, UKF).
+
+    Returns ``zs, x0, P0, Q, R, n, m, batch, row_missing`` where ``row_missing`` ``(T, ...)``
+    marks the all-NaN measurement rows.
+    """
+    x0, P0, n = check_state(x0, P0, ("x0", "P0"))
+    zs, row_missing = as_measurement_sequence(zs, "zs")
+    m = zs.shape[-1]
+    Q = check_covariance(Q, "Q", n, origin=f"n = {n} from x0")
+    R = check_covariance(R, "R", m, positive_definite=True, origin=f"m = {m} from zs")
+    batch = broadcast_batch({"zs[k]": zs.shape[1:-1], "x0": x0.shape[:-1], "P0": P0.shape[:-2],
+                             "Q": Q.shape[:-2], "R": R.shape[:-2]})
+    return zs, x0, P0, Q, R, n, m, batch, row_missing
+
+
+_FORMS = ("joseph", "standard")
+
+
+def check_form(form) -> str:
+    """The covariance-update form, ``"joseph"`` or ``"standard"``."""
+    if form not in _FORMS:
+        raise ValueError(f"form must be one of {_FORMS} (covariance update), got {form!r}")
+    return form
+
+
+def check_angles(angle_components, m: int, name: str = "angle_components") -> tuple[int, ...]:
+    """Validate a sequence of component indices into a vector of length ``m``; sorted, unique, >= 0."""
+    try:
+        idx = tuple(int(i) for i in angle_components)
+    except TypeError:
+        raise TypeError(f"{name} must be a sequence of integer indices, got {angle_components!r}") from None
+    bad = [i for i in idx if not -m <= i < m]
+    if bad:
+        raise ValueError(f"{name} must index a vector of length {m}, got {bad}")
+    return tuple(sorted({i % m for i in idx}))
+
+
+def call_checked(fn, x, name: str, shape: tuple) -> np.ndarray:
+    """Call a user function once at the boundary and check the shape of what it returns."""
+    try:
+        out = np.asarray(fn(x), dtype=float)
+    except Exception as exc:  # report which argument failed, keep the cause
+        raise ValueError(f"{name} failed on x of shape {x.shape}: {exc}") from exc
+    if shape and (out.ndim < len(shape) or out.shape[-len(shape):] != shape):
+        raise ValueError(f"{name}(x) must return shape (..., {', '.join(map(str, shape))}), got {out.shape}")
+    return out
+
+
+def check_points(points):
+    """A sigma-point scheme of :mod:`kftrack.ukf` (``None``: the default ``MerweScaledSigmaPoints()``)."""
+    from .ukf import JulierSigmaPoints, MerweScaledSigmaPoints  # the schemes live with the UKF
+
+    if points is None:
+        return MerweScaledSigmaPoints()
+    if not isinstance(points, (MerweScaledSigmaPoints, JulierSigmaPoints)):
+        raise TypeError(f"points must be MerweScaledSigmaPoints or JulierSigmaPoints, got {type(points).__name__}")
+    return points

@@ -34,12 +34,12 @@ import scipy.signal
 from scipy.spatial.transform import Rotation
 
 from ._validate import as_float_array, as_vector, check_covariance, check_rng
-from .kalman import _predict, _update
+from .kernels import kf_predict, kf_update
 from .steady import (SteadyState, continuous_gain, discrete_gain, estimator_tf, observability_gramian,
                      sampled_model)
 
 __all__ = [
-    "GRAVITY", "PITCH_PLANT", "HEIGHT_PLANT", "StateSpace", "filter_tfs", "SampledFilter", "sampled_filter", "plant_response", "tilt_from_accel",
+    "GRAVITY", "PITCH_PLANT", "HEIGHT_PLANT", "StateSpace", "filter_tfs", "SampledFilter", "sampled_filter", "density_from_variance", "plant_response", "tilt_from_accel",
     "accel_from_tilt", "vertical_acceleration", "altimeter_tilt_correction", "dynamic_model",
     "kinematic_model", "skew", "integrated_A", "integrated_gramian", "body_rates",
     "simulate_imu", "simulate_height_sensors", "integrated_filter", "INTEGRATED_XI",
@@ -210,16 +210,48 @@ class SampledFilter(NamedTuple):
     K: np.ndarray
 
 
-def sampled_filter(model: StateSpace, Q, R, dt: float) -> SampledFilter:
+def sampled_filter(model: StateSpace, q, r, dt: float) -> SampledFilter:
     r"""Discrete equivalent at the sample time ``dt`` of the continuous steady-state filter
-    of ``model`` with densities ``Q`` (``G = I``) and ``R``: :math:`F = e^{A dt}`, the
-    zero-order-hold input matrix, Van Loan's :math:`Q_d` and :math:`R_d = R/dt`
-    (:func:`kftrack.steady.sampled_model`, :func:`kftrack.steady.discrete_gain`).
-    ``K / dt`` tends to the continuous ``L`` as ``dt -> 0``."""
-    F, Bd, Qd = sampled_model(model.A, model.B, Q, dt)
-    R = check_covariance(R, "R", model.C.shape[0], positive_definite=True)
-    K = discrete_gain(F, model.C, Qd, R / dt).K
+    of ``model`` with spectral **densities** ``q`` (process, ``G = I``) and ``r``
+    (measurement): :math:`F = e^{A dt}`, the zero-order-hold input matrix, Van Loan's
+    :math:`Q_d \approx q\,dt` and :math:`R_d = r/dt` (:func:`kftrack.steady.sampled_model`,
+    :func:`kftrack.steady.discrete_gain`). ``K / dt`` tends to the continuous ``L`` as
+    ``dt -> 0``.
+
+    ``q`` and ``r`` are densities, not per-sample variances: a sensor whose samples at ``dt``
+    have variance ``sigma2`` is white noise of density ``sigma2 * dt``
+    (:func:`density_from_variance`). Passing ``sigma2`` itself, as the study's continuous
+    design does with its measured variances, assumes ``1/dt`` times the actual noise.
+    Scaling ``q`` and ``r`` by the same factor leaves ``K`` unchanged.
+
+    Parameters
+    ----------
+    model : the continuous model (``A, B, C, D``), state dimension ``n``, ``m`` outputs.
+    q : (n, n) process-noise density. r : (m, m) measurement-noise density. dt : s, > 0.
+    """
+    if not dt > 0:
+        raise ValueError(f"dt must be > 0, got {dt!r}")
+    F, Bd, Qd = sampled_model(model.A, model.B, q, dt)
+    r = check_covariance(r, "r", model.C.shape[0], positive_definite=True)
+    K = discrete_gain(F, model.C, Qd, r / dt).K
     return SampledFilter(F, Bd, model.C, model.D, K)
+
+
+def density_from_variance(sigma2, dt: float) -> np.ndarray:
+    r"""Spectral density of white noise whose samples at interval ``dt`` have variance
+    ``sigma2``: :math:`q = \sigma^2\,\Delta t` (the inverse of :math:`R_d = r/\Delta t`).
+
+    ``sigma2`` is a scalar or an array of per-sample variances (any shape); ``dt`` in s.
+    Use it to hand measured per-sample variances (as simulated by :func:`simulate_imu` and
+    :func:`simulate_height_sensors`) to :func:`sampled_filter` or :func:`integrated_filter`,
+    whose arguments are densities.
+    """
+    sigma2 = np.asarray(sigma2, dtype=float)
+    if np.any(~np.isfinite(sigma2)):
+        raise ValueError(f"sigma2 must be finite, got {sigma2!r}")
+    if not (isinstance(dt, (int, float, np.floating, np.integer)) and dt > 0):
+        raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+    return sigma2 * dt
 
 
 def plant_response(num, den, t, ref, derivatives: int = 1, delay: float = 0.0) -> np.ndarray:
@@ -341,8 +373,8 @@ def integrated_filter(dt: float, y_a, omega_m, Xi=INTEGRATED_XI, Theta=INTEGRATE
     Fs = scipy.linalg.expm(integrated_A(y_a[:-1], omega_m[:-1]) * dt)
     for k in range(T):
         if k:
-            x, P = _predict(x, P, Fs[k - 1], Q)
-        u = _update(x, P, y_a[k], H, R)
+            x, P = kf_predict(x, P, Fs[k - 1], Q)
+        u = kf_update(x, P, y_a[k], H, R)
         x, P = u.x, u.P
         xs[k], Ps[k] = x, P
     pitch, roll = tilt_from_accel(xs[:, :3], wide=True)

@@ -1,25 +1,51 @@
-"""Locate the book's data files, independently of the working directory.
+"""Locate the book's data files, wherever the package is installed and whatever the working
+directory.
 
 The files live in the repository's ``data/`` folder (their provenance is in
-``data/README.md``). Set ``KFTRACK_DATA`` to use another folder.
+``data/README.md``); a wheel built from the repository (``pip install .``) ships a copy of
+them inside the package as ``kftrack/data``. :func:`data_dir` looks, in order, in
+
+1. ``$KFTRACK_DATA``, if set (an explicit choice of folder always wins);
+2. ``kftrack/data`` next to this module (an installed wheel);
+3. ``<repository>/data`` (a source checkout or an editable install).
 """
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
-__all__ = ["data_dir", "data_path"]
+__all__ = ["data_dir", "data_path", "data_files"]
+
+_PACKAGE_DATA = Path(__file__).resolve().parent / "data"
+_SOURCE_DATA = Path(__file__).resolve().parents[2] / "data"
 
 
 def data_dir() -> Path:
-    """The data folder: ``$KFTRACK_DATA`` if set, else ``<repository>/data``."""
+    """The data folder: ``$KFTRACK_DATA`` if set, else the installed package's ``kftrack/data``,
+    else the source tree's ``<repository>/data``. Raises ``FileNotFoundError`` (naming the
+    places looked in) if none exists."""
     env = os.environ.get("KFTRACK_DATA")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "data"
+    if env:
+        return Path(env)
+    for folder in (_PACKAGE_DATA, _SOURCE_DATA):
+        if folder.is_dir():
+            return folder
+    raise FileNotFoundError(f"no kftrack data folder: looked in $KFTRACK_DATA (unset), {_PACKAGE_DATA} "
+                            f"(installed package) and {_SOURCE_DATA} (source tree); set KFTRACK_DATA")
 
 
 def data_path(name: str) -> Path:
     """Path of the data file ``name`` inside :func:`data_dir`; raises if it is missing."""
-    path = data_dir() / name
+    folder = data_dir()
+    path = folder / name
     if not path.exists():
-        raise FileNotFoundError(f"data file {name!r} not found in {data_dir()} (see data/README.md)")
+        raise FileNotFoundError(f"data file {name!r} not found in {folder} (see data/README.md)")
     return path
+
+
+def data_files() -> list[str]:
+    """Names (relative paths, ``/``-separated) of every data file in :func:`data_dir`, sorted;
+    ``README.md`` (the provenance) excluded."""
+    folder = data_dir()
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                  if p.is_file() and p.name != "README.md" and "__pycache__" not in p.parts)

@@ -24,7 +24,7 @@ Shapes follow :mod:`kftrack.kalman`: ``x`` ``(..., n)``, ``P`` ``(..., n, n)``, 
 sequences. The callables must broadcast: ``f(x)`` maps ``(..., n)`` to ``(..., n)``,
 ``F_jac(x)`` to ``(..., n, n)``, ``h(x)`` to ``(..., m)`` and ``H_jac(x)`` to ``(..., m, n)``;
 so one call filters one track or every Monte Carlo run at once. Pass the sampling interval
-with :func:`functools.partial` or a lambda, e.g. ``f=lambda x: model.f(x, dt)``.
+with ``functools.partial`` or a lambda, e.g. ``f=lambda x: model.f(x, dt)``.
 
 On a linear model (``f(x) = F x``, ``h(x) = H x``) the EKF is the Kalman filter, bit for bit.
 """
@@ -34,42 +34,18 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from ._validate import as_float_array, as_matrix, as_vector, check_covariance, check_rng
-from .kalman import FilterResult, Update, _batch, _check_sequence, _check_state, _predict, _run_sequence, _sym, _T, _update
+from ._validate import (as_float_array, as_matrix, as_vector, broadcast_batch, call_checked, check_angles,
+                        check_covariance, check_rng, check_sequence, check_state)
+from .kalman import FilterResult, Update
+from .kernels import ekf_predict as _k_predict
+from .kernels import ekf_update as _k_update
+from .kernels import matrix_transpose, mv, run_sequence, sym, wrap_angle
+from .kernels import residual as _k_residual
 
-__all__ = ["wrap_angle", "residual", "linearized_transform", "ekf_predict", "ekf_update", "extended_kalman_filter",
+__all__ = ["wrap_angle", "residual", "measurement_functions", "linearized_transform", "ekf_predict", "ekf_update", "extended_kalman_filter",
            "simulate_additive_gaussian"]
 
 Vector = Callable[[np.ndarray], np.ndarray]
-
-
-def wrap_angle(a) -> np.ndarray:
-    r"""Wrap angles (rad) to :math:`(-\pi, \pi]`: :math:`\pi - ((\pi - a) \bmod 2\pi)`.
-
-    ``wrap_angle(pi) == pi`` and ``wrap_angle(-pi) == pi``; any shape.
-    """
-    a = np.asarray(a, dtype=float)
-    return np.pi - np.mod(np.pi - a, 2.0 * np.pi)
-
-
-def _angles(angle_components, m: int, name: str = "angle_components") -> tuple[int, ...]:
-    """Validate a tuple of component indices into a vector of length ``m``."""
-    try:
-        idx = tuple(int(i) for i in angle_components)
-    except TypeError:
-        raise TypeError(f"{name} must be a sequence of integer indices, got {angle_components!r}") from None
-    bad = [i for i in idx if not -m <= i < m]
-    if bad:
-        raise ValueError(f"{name} must index a vector of length {m}, got {bad}")
-    return tuple(sorted({i % m for i in idx}))
-
-
-def _residual(a: np.ndarray, b: np.ndarray, angles: tuple[int, ...]) -> np.ndarray:
-    d = a - b
-    if angles:
-        d = d.copy()
-        d[..., angles] = wrap_angle(d[..., angles])
-    return d
 
 
 def residual(a, b, angle_components: Sequence[int] = ()) -> np.ndarray:
@@ -80,50 +56,27 @@ def residual(a, b, angle_components: Sequence[int] = ()) -> np.ndarray:
     """
     a = as_vector(a, "a")
     b = as_vector(b, "b", a.shape[-1])
-    return _residual(a, b, _angles(angle_components, a.shape[-1]))
+    return _k_residual(a, b, check_angles(angle_components, a.shape[-1]))
 
 
-# --------------------------------------------------------------------------------------------
-# unchecked kernels (shared with the UKF and the Monte Carlo loops)
-# --------------------------------------------------------------------------------------------
-def _wrap_state(x, x_angles):
-    """Wrap the state components ``x_angles`` to (-pi, pi] (a copy; ``x`` itself when there are none)."""
-    if not x_angles:
-        return x
-    x = np.array(x, dtype=float)
-    x[..., x_angles] = wrap_angle(x[..., x_angles])
-    return x
-
-
-def _ekf_predict(x, P, f, F_jac, Q, x_angles=()):
-    F = F_jac(x)
-    _, P_pred = _predict(x, P, F, Q)
-    return _wrap_state(f(x), x_angles), P_pred
-
-
-def _gain_update(x, P, y, H, R) -> Update:
-    """Update with a given innovation ``y``. Runs :func:`kalman._update` linearized at zero
-    (where its innovation is ``y`` exactly) and shifts the mean back by ``x``; every number is
-    then the one the Kalman filter computes, to the last bit."""
-    u = _update(np.zeros_like(x), P, y, H, R)
-    return u._replace(x=x + u.x)
-
-
-def _ekf_update(x, P, z, h, H_jac, R, angles, x_angles=()) -> Update:
-    y = _residual(z, h(x), angles)
-    u = _gain_update(x, P, y, H_jac(x), R)
-    return u._replace(x=_wrap_state(u.x, x_angles)) if x_angles else u
-
-
-def _call(fn, x, name: str, shape: tuple) -> np.ndarray:
-    """Call a user function once at the boundary and check the shape of what it returns."""
-    try:
-        out = np.asarray(fn(x), dtype=float)
-    except Exception as exc:  # report which argument failed, keep the cause
-        raise ValueError(f"{name} failed on x of shape {x.shape}: {exc}") from exc
-    if shape and (out.ndim < len(shape) or out.shape[-len(shape):] != shape):
-        raise ValueError(f"{name}(x) must return shape (..., {', '.join(map(str, shape))}), got {out.shape}")
-    return out
+def measurement_functions(h, H_jac, n: int, m: int | None = None) -> tuple[Vector, Vector]:
+    """``(h, H_jac)`` as callables: a callable ``h`` needs its Jacobian ``H_jac``; an ``(m, n)``
+    array ``h`` is the linear measurement :math:`h(x) = H x` with Jacobian ``H`` (then ``H_jac``
+    must be None). ``n`` is the state size and ``m``, when known, the measurement size."""
+    if callable(h):
+        if H_jac is None:
+            raise ValueError("H_jac must be a callable (the Jacobian of h) when h is a function; "
+                             "pass h as an (m, n) array for a linear measurement H x")
+        if not callable(H_jac):
+            raise TypeError(f"H_jac must be a callable (..., n) -> (..., m, n), got {type(H_jac).__name__}")
+        return h, H_jac
+    H = as_matrix(h, "h", m, n, origin=f"a linear measurement matrix H of shape (m, n), n = {n} from the state")
+    if H.ndim != 2:
+        raise ValueError(f"h as a linear measurement matrix must have shape (m, {n}), got shape {H.shape}")
+    if H_jac is not None:
+        raise ValueError("H_jac must be None when h is a matrix (the linear measurement H x has Jacobian H), "
+                         f"got {type(H_jac).__name__}")
+    return (lambda x: mv(H, x)), (lambda x: H)
 
 
 # --------------------------------------------------------------------------------------------
@@ -135,10 +88,10 @@ def linearized_transform(fn: Vector, jac: Vector, x, P) -> tuple[np.ndarray, np.
 
     ``fn`` maps ``(..., n)`` to ``(..., d)``, ``jac`` to ``(..., d, n)``. Returns ``(mean, cov)``.
     """
-    x, P, n = _check_state(x, P)
-    y = _call(fn, x, "fn", ())
-    J = _call(jac, x, "jac", (y.shape[-1], n))
-    return y, _sym(J @ P @ _T(J))
+    x, P, n = check_state(x, P)
+    y = call_checked(fn, x, "fn", ())
+    J = call_checked(jac, x, "jac", (y.shape[-1], n))
+    return y, sym(J @ P @ matrix_transpose(J))
 
 
 def ekf_predict(x, P, f: Vector, F_jac: Vector, Q, state_angles: Sequence[int] = ()) -> tuple[np.ndarray, np.ndarray]:
@@ -154,16 +107,16 @@ def ekf_predict(x, P, f: Vector, F_jac: Vector, Q, state_angles: Sequence[int] =
     state_angles : indices of the state that are angles (rad), e.g. a heading; ``f(x)`` is
         wrapped to :math:`(-\pi, \pi]` there.
     """
-    x, P, n = _check_state(x, P)
+    x, P, n = check_state(x, P)
     Q = check_covariance(Q, "Q", n)
-    x_angles = _angles(state_angles, n, "state_angles")
-    _call(f, x, "f", (n,))
-    F = _call(F_jac, x, "F_jac", (n, n))
-    _batch({"x": x.shape[:-1], "P": P.shape[:-2], "F_jac(x)": F.shape[:-2], "Q": Q.shape[:-2]})
-    return _ekf_predict(x, P, f, F_jac, Q, x_angles)
+    x_angles = check_angles(state_angles, n, "state_angles")
+    call_checked(f, x, "f", (n,))
+    F = call_checked(F_jac, x, "F_jac", (n, n))
+    broadcast_batch({"x": x.shape[:-1], "P": P.shape[:-2], "F_jac(x)": F.shape[:-2], "Q": Q.shape[:-2]})
+    return _k_predict(x, P, f, F_jac, Q, x_angles)
 
 
-def ekf_update(x, P, z, h: Vector, H_jac: Vector, R, angle_components: Sequence[int] = (),
+def ekf_update(x, P, z, h: Vector | np.ndarray, H_jac: Vector | None, R, angle_components: Sequence[int] = (),
                state_angles: Sequence[int] = ()) -> Update:
     r"""EKF measurement update (Joseph form) with innovation :math:`y = z \ominus h(x)`.
 
@@ -172,6 +125,9 @@ def ekf_update(x, P, z, h: Vector, H_jac: Vector, R, angle_components: Sequence[
     x : (..., n) prior mean; ``P`` (..., n, n) prior covariance.
     z : (..., m) measurement.
     h : callable ``(..., n) -> (..., m)``; ``H_jac`` its Jacobian ``(..., n) -> (..., m, n)``.
+        Or ``h`` an ``(m, n)`` array ``H``: the linear measurement :math:`h(x) = Hx` with
+        Jacobian ``H`` (then ``H_jac`` must be None); the update is then
+        :func:`kftrack.kalman.update`'s, bit for bit.
     R : (m, m) or (..., m, m) measurement-noise covariance, positive definite.
     angle_components : indices of ``z`` that are angles (rad); their innovation is wrapped
         to :math:`(-\pi, \pi]`.
@@ -182,19 +138,20 @@ def ekf_update(x, P, z, h: Vector, H_jac: Vector, R, angle_components: Sequence[
     Update
         ``(x, P, y, S, K, nis, loglik)`` as in :func:`kftrack.kalman.update`.
     """
-    x, P, n = _check_state(x, P)
+    x, P, n = check_state(x, P)
     z = as_vector(z, "z")
     m = z.shape[-1]
     R = check_covariance(R, "R", m, positive_definite=True)
-    angles = _angles(angle_components, m)
-    x_angles = _angles(state_angles, n, "state_angles")
-    _call(h, x, "h", (m,))
-    H = _call(H_jac, x, "H_jac", (m, n))
-    _batch({"x": x.shape[:-1], "P": P.shape[:-2], "z": z.shape[:-1], "H_jac(x)": H.shape[:-2], "R": R.shape[:-2]})
-    return _ekf_update(x, P, z, h, H_jac, R, angles, x_angles)
+    angles = check_angles(angle_components, m)
+    x_angles = check_angles(state_angles, n, "state_angles")
+    h, H_jac = measurement_functions(h, H_jac, n, m)
+    call_checked(h, x, "h", (m,))
+    H = call_checked(H_jac, x, "H_jac", (m, n))
+    broadcast_batch({"x": x.shape[:-1], "P": P.shape[:-2], "z": z.shape[:-1], "H_jac(x)": H.shape[:-2], "R": R.shape[:-2]})
+    return _k_update(x, P, z, h, H_jac, R, angles, x_angles)
 
 
-def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H_jac: Vector, R,
+def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | np.ndarray, H_jac: Vector | None, R,
                            angle_components: Sequence[int] = (), *, state_angles: Sequence[int] = (),
                            R_per_step: bool = False, progress: bool = False) -> FilterResult:
     r"""Filter a whole measurement sequence with the EKF: update with ``zs[k]``, then predict.
@@ -211,7 +168,8 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H
         also be a callable ``(..., n) -> (..., n, n)``: state-dependent process noise evaluated
         at the filtered estimate before each prediction (seed 001's
         :math:`Q = \Gamma(\hat x)\,\Sigma\,\Gamma(\hat x)^\top`, :meth:`kftrack.models.Turn3DAngles.Q`).
-    h, H_jac, R : measurement function, its Jacobian, measurement noise (see :func:`ekf_update`).
+    h, H_jac, R : measurement function, its Jacobian, measurement noise (see :func:`ekf_update`);
+        ``h`` may be an ``(m, n)`` matrix ``H`` (linear measurement) with ``H_jac=None``.
     angle_components : indices of the measurement that are angles (innovations wrapped).
     state_angles : indices of the state that are angles (predicted and filtered means wrapped
         to :math:`(-\pi, \pi]`).
@@ -225,28 +183,29 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H
     kftrack.kalman.FilterResult
     """
     Q_fn = Q if callable(Q) else None
-    x0c, _, n0 = _check_state(x0, P0, ("x0", "P0"))
+    x0c, _, n0 = check_state(x0, P0, ("x0", "P0"))
     if Q_fn is not None:
-        Q = _call(Q_fn, x0c, "Q", (n0, n0))
+        Q = call_checked(Q_fn, x0c, "Q", (n0, n0))
     R_seq = None
     if R_per_step:
         R_seq, R = _per_step(R, zs)
-    zs, x0, P0, Q, R, n, m, batch, row_missing = _check_sequence(zs, x0, P0, Q, R)
-    angles = _angles(angle_components, m)
-    x_angles = _angles(state_angles, n, "state_angles")
+    zs, x0, P0, Q, R, n, m, batch, row_missing = check_sequence(zs, x0, P0, Q, R)
+    angles = check_angles(angle_components, m)
+    x_angles = check_angles(state_angles, n, "state_angles")
     xb = np.broadcast_to(x0, batch + (n,))
-    _call(f, xb, "f", (n,))
-    _call(F_jac, xb, "F_jac", (n, n))
-    _call(h, xb, "h", (m,))
-    _call(H_jac, xb, "H_jac", (m, n))
+    h, H_jac = measurement_functions(h, H_jac, n, m)
+    call_checked(f, xb, "f", (n,))
+    call_checked(F_jac, xb, "F_jac", (n, n))
+    call_checked(h, xb, "h", (m,))
+    call_checked(H_jac, xb, "H_jac", (m, n))
     if Q_fn is not None:
-        check_covariance(_call(Q_fn, xb, "Q", (n, n)), "Q(x0)", n)  # every run's start
-        predict = lambda x, P: _ekf_predict(x, P, f, F_jac, Q_fn(x), x_angles)  # noqa: E731
+        check_covariance(call_checked(Q_fn, xb, "Q", (n, n)), "Q(x0)", n)  # every run's start
+        predict = lambda x, P: _k_predict(x, P, f, F_jac, Q_fn(x), x_angles)  # noqa: E731
     else:
-        predict = lambda x, P: _ekf_predict(x, P, f, F_jac, Q, x_angles)  # noqa: E731
+        predict = lambda x, P: _k_predict(x, P, f, F_jac, Q, x_angles)  # noqa: E731
     if R_seq is None:
-        return _run_sequence(zs, x0, P0, batch, row_missing, predict,
-                             lambda x, P, z: _ekf_update(x, P, z, h, H_jac, R, angles, x_angles), progress)
+        return run_sequence(zs, x0, P0, batch, row_missing, predict,
+                            lambda x, P, z: _k_update(x, P, z, h, H_jac, R, angles, x_angles), progress)
     # one covariance per step: carry it through the loop next to the measurement
     T = zs.shape[0]
     try:
@@ -261,9 +220,9 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector, H
         Rk = z[..., m:].reshape(z.shape[:-1] + (m, m))
         # runs without a measurement arrive zeroed (their result is discarded): keep S invertible
         Rk = np.where(np.all(Rk == 0.0, axis=(-2, -1))[..., None, None], np.eye(m), Rk)
-        return _ekf_update(x, P, z[..., :m], h, H_jac, Rk, angles, x_angles)
+        return _k_update(x, P, z[..., :m], h, H_jac, Rk, angles, x_angles)
 
-    return _run_sequence(packed, x0, P0, batch, row_missing, predict, update, progress)
+    return run_sequence(packed, x0, P0, batch, row_missing, predict, update, progress)
 
 
 def _per_step(R, zs) -> tuple[np.ndarray, np.ndarray]:
@@ -317,7 +276,7 @@ def simulate_additive_gaussian(f: Vector, h: Vector, x0, P0, Q, R, steps: int, r
     Q = check_covariance(Q, "Q", n)
     R = check_covariance(R, "R")
     m = R.shape[-1]
-    angles = _angles(angle_components, m)
+    angles = check_angles(angle_components, m)
     size = () if runs is None else (int(runs),)
 
     def draw(mean, cov):

@@ -48,6 +48,7 @@ __all__ = [
     "frame_from_derivatives", "turn_rate", "turn_model_residual", "frenet_generator",
     "CONVENTIONS", "initial_frame", "Segment", "FrenetTrack", "segments_from_radii",
     "simulate", "simulate_euler", "orthonormality_error", "circle_closure",
+    "euler_endpoint_error",
 ]
 
 
@@ -371,6 +372,11 @@ def _schedule(segs: list[Segment], speed0: float, dt: float, n_max: int | None):
         dur[i] = 2 * s.length / (v + v_end)
         v = v_end
     tk = np.concatenate([[0.0], np.cumsum(dur)])
+    short = int(np.argmin(dur))
+    if dt > dur[short]:  # a segment shorter than dt can fall between two samples, unseen
+        raise ValueError(f"dt must be at most the duration of every segment (each must be sampled), got dt = {dt:g} s "
+                         f"but segment {short} lasts {dur[short]:.6g} s ({segs[short].length:g} m); total duration "
+                         f"{tk[-1]:.6g} s; use a smaller dt")
     n = int(np.floor(tk[-1] / dt * (1 + 1e-12))) + 1
     if n_max is not None:
         n = min(n, n_max)
@@ -427,7 +433,8 @@ def simulate(segments: Sequence[Segment], dt: float, r0=(0.0, 0.0, 0.0), v0=(1.0
     Parameters
     ----------
     segments : sequence of :class:`Segment`.
-    dt : sampling interval (s), ``> 0``.
+    dt : sampling interval (s), ``> 0`` and at most the duration of the shortest segment
+        (``ValueError`` otherwise: a segment shorter than ``dt`` could have no sample).
     r0, v0 : (3,) initial position (m) and velocity (m/s, non-zero).
     up : (3,) sets the initial binormal (see :func:`initial_frame`); ignored if ``frame0`` given.
     frame0 : optional (3, 3) initial frame, rows ``t, n, b`` (right-handed orthonormal, ``t``
@@ -554,3 +561,25 @@ def circle_closure(radius: float, ds: float, method: str = "exact") -> float:
     else:
         raise ValueError(f"method must be 'exact' or 'euler', got {method!r}")
     return float(np.linalg.norm(tr.r[-1] - tr.r[0]))
+
+
+def euler_endpoint_error(segments: Sequence[Segment], ds: float) -> tuple[float, float]:
+    r"""End-point error of study 000's Euler simulator and its first-order prediction.
+
+    Returns ``(error, leading)``: ``error`` is :math:`|\mathbf r_{Euler}(L) - \mathbf r(L)|` (m),
+    :func:`simulate_euler` against the exact :func:`simulate` at unit speed from the origin, and
+    ``leading`` is :math:`\tfrac{ds}{2}\,|\mathbf t(L) - \mathbf t(0)|`. The Euler position steps
+    along the tangent at the *end* of each step, so it samples the path half a step ahead:
+    :math:`\sum_k \mathbf t(s_k)\,ds = \int_{ds/2}^{L+ds/2}\mathbf t\,d\sigma + O(ds^2)`, an error
+    :math:`\tfrac{ds}{2}(\mathbf t(L) - \mathbf t(0)) + O(ds^2)`: first order in ``ds``, except on
+    a closed curve, where it cancels (see :func:`circle_closure`).
+    """
+    segs = _check_segments(segments)
+    step = positive_scalar(ds, "ds", "m")
+    eu = simulate_euler(segs, step)
+    n = len(eu.t) - 1
+    total = float(sum(g.length for g in segs))
+    ex = simulate(segs, total / n, n_max=n + 1)
+    error = float(np.linalg.norm(eu.r[-1] - ex.r[-1]))
+    leading = 0.5 * step * float(np.linalg.norm(ex.frame[-1, 0] - ex.frame[0, 0]))
+    return error, leading

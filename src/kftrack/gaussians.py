@@ -42,6 +42,10 @@ __all__ = [
     "multiply_multivariate_gaussians",
     "update_1d",
     "moment_test",
+    "mahalanobis2",
+    "ellipse_mass",
+    "AllanDeviation",
+    "allan_deviation",
 ]
 
 _LOG_2PI = np.log(2.0 * np.pi)
@@ -310,3 +314,91 @@ def moment_test(sample, mean: float, var: float, confidence: float = 0.95) -> Mo
     hi = float(stats.chi2.ppf(1.0 - alpha / 2, n - 1))
     return MomentTest(n, m, s2, float(t), t_crit, float(chi2), lo, hi,
                       bool(abs(t) <= t_crit), bool(lo <= chi2 <= hi))
+
+
+def mahalanobis2(x, mean, cov) -> np.ndarray:
+    r"""Squared Mahalanobis distance :math:`d^2 = (x - \mu)^\top \Sigma^{-1} (x - \mu)`.
+
+    ``x`` and ``mean`` have shape ``(..., n)``, ``cov`` ``(..., n, n)`` (symmetric positive
+    definite); broadcasts, returns shape ``(...)``. If :math:`x \sim \mathcal N(\mu, \Sigma)`
+    then :math:`d^2 \sim \chi^2_n`.
+    """
+    x = as_vector(x, "x")
+    mean = as_vector(mean, "mean", x.shape[-1])
+    cov = check_covariance(cov, "cov", x.shape[-1])
+    d = x - mean
+    L = np.linalg.cholesky(cov)
+    u = np.linalg.solve(L, d[..., None])[..., 0]
+    return np.sum(u**2, axis=-1)
+
+
+def ellipse_mass(nsigma, dim: int = 2) -> np.ndarray:
+    r"""Probability mass inside the ``nsigma``-sigma ellipsoid :math:`d^2 \le n_\sigma^2` of an
+    ``dim``-dimensional Gaussian: :math:`P(\chi^2_{dim} \le n_\sigma^2)`.
+
+    In one dimension this is the familiar 68 / 95.4 / 99.7 % of ±1, 2, 3 σ; in two dimensions
+    it is :math:`1 - e^{-n_\sigma^2/2}`, only 86.5 % for the 2σ ellipse.
+    """
+    k = as_float_array(nsigma, "nsigma")
+    if np.any(~(k >= 0)):
+        raise ValueError(f"nsigma must be >= 0, got {nsigma!r}")
+    if not (isinstance(dim, (int, np.integer)) and dim >= 1):
+        raise ValueError(f"dim must be a positive integer, got {dim!r}")
+    return stats.chi2.cdf(k**2, dim)
+
+
+class AllanDeviation(NamedTuple):
+    """Result of :func:`allan_deviation`: cluster times ``tau`` (s), deviations ``adev``
+    (units of the signal), number of clusters ``K`` and the equivalent chi-square degrees of
+    freedom ``edf`` of each Allan variance (white-noise case)."""
+
+    tau: np.ndarray
+    adev: np.ndarray
+    K: np.ndarray
+    edf: np.ndarray
+
+
+def allan_deviation(y, dt: float, m) -> AllanDeviation:
+    r"""Non-overlapping Allan deviation of a rate signal sampled every ``dt`` seconds.
+
+    For a cluster of ``m`` samples, :math:`\tau = m\,\Delta t`; the ``K = floor(N/m)`` cluster
+    means :math:`\bar y_j` give
+
+    .. math:: \sigma_A^2(\tau) = \frac{1}{2(K-1)}\sum_{j=1}^{K-1}(\bar y_{j+1} - \bar y_j)^2 .
+
+    For white noise of per-sample variance :math:`\sigma^2` (noise density
+    :math:`N^2 = \sigma^2\Delta t`, the angle random walk of a gyro),
+    :math:`E[\sigma_A^2(\tau)] = \sigma^2/m = N^2/\tau`: the Allan deviation falls as
+    :math:`N/\sqrt\tau` (IEEE Std 952-1997, App. C). The differences are correlated
+    (neighbours share a mean), so :math:`\sigma_A^2` is not exactly chi-square; ``edf`` is
+    the two-moment (Satterthwaite) equivalent,
+    :math:`\nu = (\operatorname{tr} A)^2/\operatorname{tr} A^2 = 2(K-1)^2/(3K-4)` for the
+    quadratic form :math:`A = D^\top D`, so that :math:`\nu\,\sigma_A^2/E[\sigma_A^2]` is
+    approximately :math:`\chi^2_\nu`.
+
+    Parameters
+    ----------
+    y : (N,) finite samples. dt : sample interval (s), > 0. m : int or (M,) ints, cluster
+    sizes with ``1 <= m <= N // 2`` (at least two clusters).
+
+    Returns
+    -------
+    AllanDeviation with arrays of shape ``(M,)``.
+    """
+    y = as_vector(y, "y")
+    if y.ndim != 1 or y.size < 2:
+        raise ValueError(f"y must have shape (N,) with N >= 2, got shape {y.shape}")
+    check_finite(y, "y")
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive sample interval (s), got {dt!r}")
+    ms = np.atleast_1d(np.asarray(m))
+    if ms.ndim != 1 or not np.issubdtype(ms.dtype, np.integer) or np.any(ms < 1) or np.any(ms > y.size // 2):
+        raise ValueError(f"m must be integer cluster sizes in [1, {y.size // 2}] (N // 2 for N = {y.size}), got {m!r}")
+    adev, Ks = np.empty(ms.size), np.empty(ms.size, dtype=int)
+    for i, mi in enumerate(ms):
+        K = y.size // mi
+        means = y[: K * mi].reshape(K, mi).mean(axis=1)
+        adev[i] = np.sqrt(np.sum(np.diff(means) ** 2) / (2 * (K - 1)))
+        Ks[i] = K
+    edf = 2.0 * (Ks - 1) ** 2 / (3.0 * Ks - 4.0)
+    return AllanDeviation(ms * float(dt), adev, Ks, edf)

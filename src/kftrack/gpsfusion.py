@@ -31,7 +31,8 @@ from scipy.linalg import block_diag
 
 from ._validate import as_float_array, as_vector, check_covariance
 from .ekf import wrap_angle as _wrap
-from .kalman import _predict, _update, kalman_filter, rts_smoother
+from .kalman import kalman_filter, rts_smoother
+from .kernels import kf_predict, kf_update
 
 __all__ = [
     "thesis_transition", "speed_heading_jacobian", "thesis_process_noise", "thesis_quadrant_terms",
@@ -139,14 +140,14 @@ def speed_heading_filter(zs, x0, P0, Q, R, dt: float = 1.0, *, jacobian: bool = 
     for k in range(T):
         z = np.broadcast_to(zs[k], batch + (4 * r,)).copy()
         z[..., angle] = x[..., 3:4] + _wrap(z[..., angle] - x[..., 3:4])
-        upd = _update(x, P, z, H, R)
+        upd = kf_update(x, P, z, H, R)
         x, P, K = upd.x, upd.P, upd.K
         x[..., 3] = _wrap(x[..., 3])
         out_x[k], out_P[k] = x, P
         A = thesis_transition(x[..., 3], dt)
         F = speed_heading_jacobian(x, dt) if jacobian else A
         x_next = (A @ x[..., None])[..., 0]
-        _, P = _predict(x, P, F, Q)
+        _, P = kf_predict(x, P, F, Q)
         x = x_next
     return SpeedHeadingResult(out_x, out_P, K)
 

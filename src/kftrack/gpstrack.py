@@ -158,7 +158,7 @@ def gauss_markov_errors(rng: np.random.Generator, n_steps: int, sigma, tau, rho:
 
     Returns
     -------
-    (*size, n_steps, r)
+    ``(*size, n_steps, r)``
     """
     sigma = np.atleast_1d(np.asarray(sigma, dtype=float))
     tau = np.broadcast_to(np.asarray(tau, dtype=float), sigma.shape)
@@ -256,9 +256,9 @@ _CORRUPTIONS = ("bad_checksum", "bad_checksum", "truncated", "truncated", "non_u
 def track_log_lines(rng: np.random.Generator, data: TrackRuns | None = None, receivers=RECEIVERS) -> dict:
     """The NMEA lines of each receiver (``{filename: [str | bytes, ...]}``) for simulated runs.
 
-    Per run: :data:`_VOID_EPOCHS` void epochs before the first fix (RMC status V, GGA quality 0),
+    Per run: ``_VOID_EPOCHS`` (3) void epochs before the first fix (RMC status V, GGA quality 0),
     one GSV sentence (unsupported, ignored), then an RMC (and a GGA for receivers with ``gga``)
-    per fix. Then the corrupted copies of :data:`_CORRUPTIONS` are inserted. ``data`` defaults to
+    per fix. Then the corrupted copies of ``_CORRUPTIONS`` are inserted. ``data`` defaults to
     :func:`simulate_track_runs` with ``rng``.
     """
     if data is None:

@@ -45,17 +45,17 @@ Shapes: ``x`` ``(..., N)``, ``P`` ``(..., N, N)``, ``mu`` ``(..., r)``; time fir
 """
 from __future__ import annotations
 
-import inspect
 from collections.abc import Callable, Sequence
 from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 import scipy.linalg
 
-from ._validate import as_float_array, as_vector, check_covariance, check_finite
-from .ekf import _angles, _ekf_predict, _ekf_update
-from .kalman import Update, _batch, _predict, _sym, _update
-from .ukf import Points, _check_points, _ukf_predict, _ukf_update
+from ._validate import (as_float_array, as_vector, broadcast_batch, check_angles, check_covariance, check_finite,
+                        check_points)
+from .kernels import Update, ekf_predict, ekf_update, kf_predict, kf_update, logsumexp, mixing_log_weights, moment_match
+from .kernels import ukf_predict, ukf_update
+from .ukf import Points
 
 __all__ = [
     "Mode", "KalmanMode", "EKFMode", "UKFMode", "IMMState", "IMMResult", "IMM", "GPB1",
@@ -64,15 +64,6 @@ __all__ = [
 ]
 
 _TOL = 1e-9  # tolerance on sums of probabilities
-
-
-def _logsumexp(a, axis: int, keepdims: bool = False):
-    """log(sum(exp(a))) along ``axis``, shifted by the maximum; all ``-inf`` gives ``-inf``."""
-    m = np.max(a, axis=axis, keepdims=True)
-    m = np.where(np.isfinite(m), m, 0.0)
-    with np.errstate(divide="ignore"):
-        out = np.log(np.sum(np.exp(a - m), axis=axis, keepdims=True)) + m
-    return out if keepdims else np.squeeze(out, axis=axis)
 
 
 class _PerDt:
@@ -140,25 +131,14 @@ class KalmanMode:
     def predict(self, x, P, dt):
         """Kalman time update with ``F(dt)``, ``Q(dt)``."""
         F, Q = self._FQ(dt)
-        return _predict(x, P, F, Q)
+        return kf_predict(x, P, F, Q)
 
     def update(self, x, P, z) -> Update:
         """Kalman measurement update (Joseph form); see :func:`kftrack.kalman.update`."""
-        return _update(x, P, z, self.H, self.R)
+        return kf_update(x, P, z, self.H, self.R)
 
     def __repr__(self) -> str:
         return f"KalmanMode({self.model!r})"
-
-
-def _takes_state(Q: Callable) -> bool:
-    """True when ``Q`` takes two required positional parameters ``(x, dt)``."""
-    try:
-        params = inspect.signature(Q).parameters.values()
-    except (TypeError, ValueError):  # builtins without a signature: the usual Q(dt)
-        return False
-    required = [p for p in params if p.default is p.empty
-                and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
-    return len(required) == 2
 
 
 class _NonlinearMode:
@@ -170,15 +150,20 @@ class _NonlinearMode:
         self.model = model
         self.n = int(model.n)
         if state_dependent_Q is None:
-            state_dependent_Q = _takes_state(model.Q)
+            state_dependent_Q = getattr(model, "state_dependent_noise", False)
+        if not isinstance(state_dependent_Q, (bool, np.bool_)):
+            raise TypeError("state_dependent_Q must be True, False or None (read model.state_dependent_noise), "
+                            f"got {state_dependent_Q!r}")
         self.state_dependent_Q = bool(state_dependent_Q)
+        if h is not None and not callable(h):  # an (m, n) array: the linear measurement H x
+            H, h = h, None
         if h is None:
             self.H, self.R = _measurement(model, R, H)
             self._h = lambda x: (self.H @ x[..., None])[..., 0]
         else:
             self.R = check_covariance(R, "R", positive_definite=True)
             self._h = h
-        self._angles = _angles(angle_components, self.R.shape[-1])
+        self._angles = check_angles(angle_components, self.R.shape[-1])
 
     def _Q(self, x, dt):
         return self.model.Q(x, dt) if self.state_dependent_Q else self.model.Q(dt)
@@ -201,25 +186,29 @@ class EKFMode(_NonlinearMode):
     state_dependent_Q : whether the process noise depends on the state, called as
         ``model.Q(x, dt)`` at the estimate being predicted (the mixed estimate in the IMM), as
         seed 001's :meth:`kftrack.models.Turn3DAngles.Q`
-        :math:`\Gamma(\hat x)\Sigma\Gamma(\hat x)^\top`. Default ``None``: detected from the
-        signature (two parameters ``(x, dt)``); otherwise ``model.Q(dt)``.
+        :math:`\Gamma(\hat x)\Sigma\Gamma(\hat x)^\top`. Default ``None``: the model's class
+        attribute ``state_dependent_noise`` (True: ``Q(x, dt)``; absent or False: ``Q(dt)``).
     """
 
     def __init__(self, model, R, H=None, h: Callable | None = None, H_jac: Callable | None = None,
                  angle_components: Sequence[int] = (), state_dependent_Q: bool | None = None):
-        if (h is None) != (H_jac is None):
+        if h is not None and not callable(h):
+            if H_jac is not None:
+                raise ValueError("H_jac must be None when h is an (m, n) matrix (the linear measurement H x "
+                                 f"has Jacobian H), got {type(H_jac).__name__}")
+        elif (h is None) != (H_jac is None):
             raise ValueError("h and H_jac go together: give both (nonlinear measurement) or neither")
         super().__init__(model, R, H, h, angle_components, state_dependent_Q)
         self._H_jac = (lambda x: self.H) if H_jac is None else H_jac
 
     def predict(self, x, P, dt):
         """EKF time update; see :func:`kftrack.ekf.ekf_predict`."""
-        return _ekf_predict(x, P, lambda s: self.model.f(s, dt), lambda s: self.model.jacobian(s, dt),
+        return ekf_predict(x, P, lambda s: self.model.f(s, dt), lambda s: self.model.jacobian(s, dt),
                             self._Q(x, dt))
 
     def update(self, x, P, z) -> Update:
         """EKF measurement update; see :func:`kftrack.ekf.ekf_update`."""
-        return _ekf_update(x, P, z, self._h, self._H_jac, self.R, self._angles)
+        return ekf_update(x, P, z, self._h, self._H_jac, self.R, self._angles)
 
 
 class UKFMode(_NonlinearMode):
@@ -244,16 +233,16 @@ class UKFMode(_NonlinearMode):
                  angle_components: Sequence[int] = (), state_angles: Sequence[int] = (),
                  state_dependent_Q: bool | None = None):
         super().__init__(model, R, H, h, angle_components, state_dependent_Q)
-        self.points = _check_points(points)
-        self._state_angles = _angles(state_angles, self.n, "state_angles")
+        self.points = check_points(points)
+        self._state_angles = check_angles(state_angles, self.n, "state_angles")
 
     def predict(self, x, P, dt):
         """UKF time update; see :func:`kftrack.ukf.ukf_predict`."""
-        return _ukf_predict(x, P, lambda s: self.model.f(s, dt), self._Q(x, dt), self.points, self._state_angles)
+        return ukf_predict(x, P, lambda s: self.model.f(s, dt), self._Q(x, dt), self.points, self._state_angles)
 
     def update(self, x, P, z) -> Update:
         """UKF measurement update; see :func:`kftrack.ukf.ukf_update`."""
-        return _ukf_update(x, P, z, self._h, self.R, self.points, self._state_angles, self._angles)
+        return ukf_update(x, P, z, self._h, self.R, self.points, self._state_angles, self._angles)
 
 
 # --------------------------------------------------------------------------------------------
@@ -375,15 +364,6 @@ def stationary_distribution(Pi) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Gaussian mixtures and mixing across dimensions
 # --------------------------------------------------------------------------------------------
-def _moment_match(w, xs, Ps):
-    """Kernel: ``w`` (..., r), ``xs`` (r, ..., n), ``Ps`` (r, ..., n, n) -> (x, P)."""
-    wr = np.moveaxis(w, -1, 0)
-    x = np.einsum("r...,r...i->...i", wr, xs)
-    d = xs - x
-    P = np.einsum("r...,r...ij->...ij", wr, Ps + d[..., :, None] * d[..., None, :])
-    return x, _sym(P)
-
-
 def mix_gaussians(weights, means, covs) -> tuple[np.ndarray, np.ndarray]:
     r"""Moment-matched single Gaussian of a mixture:
     :math:`\bar x = \sum_i w_i x_i`, :math:`\bar P = \sum_i w_i [P_i + (x_i - \bar x)(x_i - \bar x)^\top]`.
@@ -401,7 +381,7 @@ def mix_gaussians(weights, means, covs) -> tuple[np.ndarray, np.ndarray]:
     covs = check_covariance(covs, "covs", n)
     if covs.shape[0] != r:
         raise ValueError(f"covs must have shape (r, ..., n, n) with r = {r}, got shape {covs.shape}")
-    return _moment_match(w, means, covs)
+    return moment_match(w, means, covs)
 
 
 def _embedding(src: tuple[int, ...], dst: tuple[int, ...]):
@@ -535,9 +515,9 @@ class IMM:
         else:
             w = mu[..., self._full]
             w = w / w.sum(-1, keepdims=True)
-            fx, fP = _moment_match(w, np.stack([xs[k] for k in self._full]), np.stack([Ps[k] for k in self._full]))
+            fx, fP = moment_match(w, np.stack([xs[k] for k in self._full]), np.stack([Ps[k] for k in self._full]))
         full = [_complete(xs[i], Ps[i], self._to_common[i], fx, fP) for i in range(self.r)]
-        x, P = _moment_match(mu, np.stack([a for a, _ in full]), np.stack([b for _, b in full]))
+        x, P = moment_match(mu, np.stack([a for a, _ in full]), np.stack([b for _, b in full]))
         return mu, x, P
 
     def _state(self, log_mu, xs, Ps, loglik) -> IMMState:
@@ -552,26 +532,15 @@ class IMM:
         return IMMState(x, P, mu, log_mu, tuple(xs), tuple(Ps), loglik)
 
     def _mixing_log_weights(self, log_mu, Pi):
-        """``log mu_{i|j}`` (..., r_i, r_j) and ``log cbar_j`` (..., r_j)."""
-        with np.errstate(divide="ignore"):
-            logPi = np.log(Pi)
-        joint = log_mu[..., :, None] + logPi  # (..., i, j)
-        log_cbar = _logsumexp(joint, axis=-2)
-        with np.errstate(invalid="ignore"):
-            logw = joint - log_cbar[..., None, :]
-        # a mode j that cannot be reached (cbar_j = 0) keeps its own estimate
-        dead = np.isneginf(log_cbar)
-        if np.any(dead):
-            eye = np.where(np.eye(self.r, dtype=bool), 0.0, -np.inf)
-            logw = np.where(dead[..., None, :], eye, logw)
-        return logw, log_cbar
+        """``log mu_{i|j}`` (..., r_i, r_j) and ``log cbar_j`` (..., r_j); see :func:`kftrack.kernels.mixing_log_weights`."""
+        return mixing_log_weights(log_mu, Pi)
 
     def _mix(self, w, xs, Ps):
         """Mixed initial conditions per destination mode; ``w`` (..., r_i, r_j)."""
         out_x, out_P = [], []
         for j in range(self.r):
             parts = [_complete(xs[i], Ps[i], self._emb[i][j], xs[j], Ps[j]) for i in range(self.r)]
-            x0, P0 = _moment_match(w[..., :, j], np.stack([a for a, _ in parts]), np.stack([b for _, b in parts]))
+            x0, P0 = moment_match(w[..., :, j], np.stack([a for a, _ in parts]), np.stack([b for _, b in parts]))
             out_x.append(x0)
             out_P.append(P0)
         return out_x, out_P
@@ -581,6 +550,42 @@ class IMM:
         return np.exp(logw), log_cbar
 
     # ---- public API -----------------------------------------------------------------------
+    def from_modes(self, xs, Ps, mu) -> IMMState:
+        r"""An :class:`IMMState` built from per-mode estimates, with every field consistent: the
+        combined ``x``, ``P`` (moment matching, :func:`mix_gaussians`; modes of lower dimension
+        completed as in the module docstring), ``mu``, ``log_mu = log(mu)`` and ``loglik`` NaN
+        (no update yet). Use it instead of ``state._replace(xs=...)``, which leaves ``x``, ``P``,
+        ``mu`` stale.
+
+        Parameters
+        ----------
+        xs : sequence of r arrays ``(..., n_i)``, the mode-matched means (mode ``i`` holds the
+            common components ``components[i]``).
+        Ps : sequence of r arrays ``(..., n_i, n_i)``, their covariances.
+        mu : (r,) or (..., r) mode probabilities, summing to one.
+        """
+        r = self.r
+        try:
+            xs, Ps = list(xs), list(Ps)
+        except TypeError:
+            raise TypeError(f"xs and Ps must be sequences of {r} per-mode arrays, got {type(xs).__name__} "
+                            f"and {type(Ps).__name__}") from None
+        if len(xs) != r or len(Ps) != r:
+            raise ValueError(f"xs and Ps must hold one estimate per mode ({r} modes), got {len(xs)} and {len(Ps)}")
+        xs = [as_vector(a, f"xs[{i}]", len(c)) for i, (a, c) in enumerate(zip(xs, self.components))]
+        Ps = [check_covariance(b, f"Ps[{i}]", len(c), origin=f"mode {i} holds {len(c)} components")
+              for i, (b, c) in enumerate(zip(Ps, self.components))]
+        mu = _check_probability(mu, r, "mu")
+        shapes = {"mu": mu.shape[:-1]}
+        shapes.update({f"xs[{i}]": a.shape[:-1] for i, a in enumerate(xs)})
+        shapes.update({f"Ps[{i}]": b.shape[:-2] for i, b in enumerate(Ps)})
+        batch = broadcast_batch(shapes)
+        with np.errstate(divide="ignore"):
+            log_mu = np.broadcast_to(np.log(mu), batch + (r,)).copy()
+        xs = [np.broadcast_to(a, batch + a.shape[-1:]).copy() for a in xs]
+        Ps = [np.broadcast_to(b, batch + b.shape[-2:]).copy() for b in Ps]
+        return self._state(log_mu, xs, Ps, np.full(batch + (r,), np.nan))
+
     def initialize(self, x0, P0, mu0=None) -> IMMState:
         """Initial state: every mode starts from ``(x0, P0)`` restricted to its components.
 
@@ -592,7 +597,7 @@ class IMM:
         x0 = as_vector(x0, "x0", self.N)
         P0 = check_covariance(P0, "P0", self.N)
         mu = self.mu0 if mu0 is None else _check_probability(mu0, self.r, "mu0")
-        batch = _batch({"x0": x0.shape[:-1], "P0": P0.shape[:-2], "mu0": mu.shape[:-1]})
+        batch = broadcast_batch({"x0": x0.shape[:-1], "P0": P0.shape[:-2], "mu0": mu.shape[:-1]})
         xs, Ps = [], []
         for cs in self.components:
             idx = np.array(cs)
@@ -616,14 +621,14 @@ class IMM:
         :math:`\\mu_j \\propto \\Lambda_j \\bar c_j` (log-sum-exp), then the combination."""
         z = as_vector(z, "z")
         _check_measurement_size(self.modes, z, "z")
-        _batch({"state.x": state.x.shape[:-1], "z": z.shape[:-1]})
+        broadcast_batch({"state.x": state.x.shape[:-1], "z": z.shape[:-1]})
         return self._update(state, z)
 
     def _update(self, state: IMMState, z) -> IMMState:
         ups = [m.update(a, b, z) for m, a, b in zip(self.modes, state.xs, state.Ps)]
         loglik = np.stack([np.asarray(u.loglik, dtype=float) for u in ups], axis=-1)
         joint = state.log_mu + loglik
-        log_mu = joint - _logsumexp(joint, axis=-1, keepdims=True)
+        log_mu = joint - logsumexp(joint, axis=-1, keepdims=True)
         return self._state(log_mu, [u.x for u in ups], [u.P for u in ups], loglik)
 
 
@@ -720,7 +725,7 @@ def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None, *, progress: bool = Fal
     x0 = as_vector(x0, "x0", N)
     P0 = check_covariance(P0, "P0", N)
     mu0 = estimator.mu0 if mu0 is None else _check_probability(mu0, r, "mu0")
-    batch = _batch({"zs[k]": zs.shape[1:-1], "x0": x0.shape[:-1], "P0": P0.shape[:-2], "mu0": mu0.shape[:-1]})
+    batch = broadcast_batch({"zs[k]": zs.shape[1:-1], "x0": x0.shape[:-1], "P0": P0.shape[:-2], "mu0": mu0.shape[:-1]})
     s = estimator.initialize(np.broadcast_to(x0, batch + (N,)), np.broadcast_to(P0, batch + (N, N)),
                              np.broadcast_to(mu0, batch + (r,)))
     out = {k: np.empty((T,) + batch + shp) for k, shp in
@@ -776,7 +781,7 @@ def clairvoyant_filter(modes: Sequence, mode_sequence, zs, x0, P0, dt) -> tuple[
     n = dims.pop()
     x0 = as_vector(x0, "x0", n)
     P0 = check_covariance(P0, "P0", n)
-    batch = _batch({"zs[k]": zs.shape[1:-1], "mode_sequence[k]": seq.shape[1:], "x0": x0.shape[:-1],
+    batch = broadcast_batch({"zs[k]": zs.shape[1:-1], "mode_sequence[k]": seq.shape[1:], "x0": x0.shape[:-1],
                     "P0": P0.shape[:-2]})
     x = np.broadcast_to(x0, batch + (n,)).copy()
     P = np.broadcast_to(P0, batch + (n, n)).copy()

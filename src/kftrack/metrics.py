@@ -21,23 +21,25 @@ __all__ = ["rmse", "nees", "nis", "anees", "chi2_bounds", "Consistency", "consis
            "running_rms", "mean_running_rms"]
 
 
-def rmse(estimate, truth, axis=None, *, vector: bool = False) -> np.ndarray:
+def rmse(truth, estimate, axis=None, *, vector: bool = False) -> np.ndarray:
     r"""Root-mean-square error :math:`\sqrt{\operatorname{mean}(e^2)}` with ``e = estimate - truth``.
+
+    Every metric of this module takes ``(truth, estimate, ...)`` (as :func:`nees`).
 
     Parameters
     ----------
-    estimate, truth : arrays of the same (broadcastable) shape.
+    truth, estimate : arrays of the same (broadcastable) shape.
     axis : axes to average over (``None``: all).
     vector : if True the last axis holds the components of one vector error, which are
         summed before averaging: :math:`\sqrt{\operatorname{mean}\lVert e\rVert^2}`
         (e.g. a 2-D position RMSE). ``axis`` then refers to the remaining axes.
     """
-    est = as_float_array(estimate, "estimate")
     tru = as_float_array(truth, "truth")
+    est = as_float_array(estimate, "estimate")
     try:
         err = est - tru
     except ValueError:
-        raise ValueError(f"estimate and truth must have matching shapes, got {est.shape} and {tru.shape}") from None
+        raise ValueError(f"truth and estimate must have matching shapes, got {tru.shape} and {est.shape}") from None
     sq = np.sum(err**2, axis=-1) if vector else err**2
     return np.sqrt(np.mean(sq, axis=axis))
 
@@ -137,7 +139,7 @@ class Consistency(NamedTuple):
     steps: int
 
 
-def consistency(values, dof: int, confidence: float = 0.95) -> Consistency:
+def consistency(values, dof: int, confidence: float = 0.95, *, runs: int | None = None) -> Consistency:
     r"""Time-averaged NEES/NIS test over Monte Carlo runs (Bar-Shalom, Li & Kirubarajan 2001, §5.4).
 
     Parameters
@@ -146,6 +148,10 @@ def consistency(values, dof: int, confidence: float = 0.95) -> Consistency:
         NaN (a step without a measurement) is skipped.
     dof : degrees of freedom of each value (``n`` for NEES, ``m`` for NIS).
     confidence : two-sided probability of the acceptance intervals.
+    runs : optional number of Monte Carlo runs ``N``. The shape alone cannot tell ``(T, N)``
+        from a transposed ``(N, T)`` (both are 2-D; the bounds would then be computed with
+        ``T`` runs): pass ``runs`` and a ``values`` whose second axis is not ``N`` raises
+        ``ValueError``.
 
     Returns
     -------
@@ -156,6 +162,13 @@ def consistency(values, dof: int, confidence: float = 0.95) -> Consistency:
     v = np.asarray(values, dtype=float)
     if v.ndim != 2:
         raise ValueError(f"values must have shape (T, N): time first, one column per run; got shape {v.shape}")
+    if runs is not None:
+        if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
+            raise ValueError(f"runs must be a positive integer (the number of Monte Carlo runs), got {runs!r}")
+        if v.shape[1] != runs:
+            hint = " (it looks transposed, (N, T): pass values.T)" if v.shape[0] == runs else ""
+            raise ValueError(f"values must have shape (T, N) = (T, {runs}) with runs={runs} as its second axis, "
+                             f"got shape {v.shape}{hint}")
     if np.isinf(v).any() or (v < 0).any():
         raise ValueError("values must be non-negative NEES/NIS values (NaN rows for missing steps)")
     nan = np.isnan(v)
@@ -198,20 +211,38 @@ def _sequence(value, name: str, steps: int, rows: int, cols: int, lengths: tuple
 def pcrlb(P0, F, Q, H, R, steps: int | None = None, *, average_runs: bool = False) -> PCRLB:
     r"""Posterior Cramér–Rao lower bound for additive-Gaussian models (Tichavský, Muravchik & Nehorai 1998).
 
-    For :math:`x_{k+1} = F_k x_k + w_k`, :math:`w_k \sim N(0, Q)` (``F`` the transition matrix or
-    the Jacobian along a deterministic truth) and :math:`z_k = h(x_k) + v_k`, the Fisher
-    information obeys the Riccati (information-form) recursion
+    The posterior (Bayesian, van Trees) bound holds for **any** estimator, biased or not:
+    :math:`E[(\hat x_k - x_k)(\hat x_k - x_k)^\top] \ge J_k^{-1}`, the expectation over the
+    states *and* the measurements. For :math:`x_{k+1} = f_k(x_k) + w_k`, :math:`w_k \sim N(0, Q)`
+    and :math:`z_k = h(x_k) + v_k`, :math:`v_k \sim N(0, R)`, Tichavský et al.'s general
+    information recursion is
+
+    .. math::
+
+        J_{k+1} = D^{22}_k - D^{21}_k \big(J_k + D^{11}_k\big)^{-1} D^{12}_k, \qquad
+        D^{11}_k = E[\tilde F_k^\top Q^{-1} \tilde F_k], \quad
+        D^{12}_k = -E[\tilde F_k^\top]\, Q^{-1} = (D^{21}_k)^\top, \quad
+        D^{22}_k = Q^{-1} + E[\tilde H_{k+1}^\top R^{-1} \tilde H_{k+1}],
+
+    with :math:`\tilde F_k`, :math:`\tilde H_k` the Jacobians of :math:`f_k`, :math:`h` at the
+    *true* state. When :math:`\tilde F_k = F_k` does not depend on the state (linear dynamics)
+    and :math:`Q` is invertible, the matrix inversion lemma turns it into the Riccati
+    (information-form) recursion that this function evaluates (also defined for singular
+    :math:`Q`):
 
     .. math::
 
         J_0 = P_0^{-1} + E[H_0^\top R^{-1} H_0], \qquad
-        J_{k+1} = (Q + F_k J_k^{-1} F_k^\top)^{-1} + E[H_{k+1}^\top R^{-1} H_{k+1}],
+        J_{k+1} = (Q + F_k J_k^{-1} F_k^\top)^{-1} + E[H_{k+1}^\top R^{-1} H_{k+1}] .
 
-    and any unbiased estimator has :math:`E[(\hat x_k - x_k)(\hat x_k - x_k)^\top] \ge J_k^{-1}`.
-    Only :math:`Q + F J^{-1} F^\top` is inverted, so a singular ``Q`` (e.g. the rank-1 discrete
-    white-noise acceleration) is fine, where the general form with :math:`Q^{-1}` fails. For a
-    linear-Gaussian model the bound is the Kalman filter's covariance. The time convention is
-    :func:`kftrack.kalman.kalman_filter`'s: ``P0`` is the prior of step 0, measured at step 0.
+    For nonlinear dynamics with random truths, :math:`E[\tilde F^\top Q^{-1} \tilde F] \ne
+    E[\tilde F]^\top Q^{-1} E[\tilde F]` and the Riccati form is not the bound; use the
+    general recursion. The measurement term may be nonlinear in either case (its expectation
+    over random truths: ``average_runs``). Only :math:`Q + F J^{-1} F^\top` is inverted, so a
+    singular ``Q`` (e.g. the rank-1 discrete white-noise acceleration) is fine, where the
+    general form with :math:`Q^{-1}` fails. For a linear-Gaussian model the bound is the Kalman
+    filter's covariance. The time convention is :func:`kftrack.kalman.kalman_filter`'s: ``P0``
+    is the prior of step 0, measured at step 0.
 
     Parameters
     ----------

@@ -6,6 +6,13 @@ Every model gives the transition ``F(dt)``, the process noise ``Q(dt)``, the tra
 function ``f(x, dt)``, its Jacobian ``jacobian(x, dt)`` and the position-measurement matrix
 ``H``. The matrices are derived in :mod:`kftrack.symbolic` and generated once per process.
 
+One argument order: a method that needs the state takes ``(x, dt)`` (``f``, ``jacobian``, the
+state-dependent ``F(x, dt)`` of :class:`CoordinatedTurn` and :class:`Turn3DAngles`); a linear
+model's ``F(dt)`` and ``Q(dt)`` take the interval alone. A model whose process noise depends on
+the state says so with the class attribute ``state_dependent_noise = True``; its ``Q`` is then
+``Q(x, dt)`` (:class:`Turn3DAngles`). Every other model has ``state_dependent_noise = False``
+and ``Q(dt)``; :class:`kftrack.imm.EKFMode` and :class:`kftrack.imm.UKFMode` read the attribute.
+
 Conventions
 -----------
 * State order is interleaved by axis: ``[x, vx, y, vy, z, vz]``, ``[x, vx, ax, y, vy, ay]``;
@@ -26,6 +33,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import ClassVar
 
 import numpy as np
 import sympy as sp
@@ -180,6 +188,9 @@ def _position_selector(n: int, positions: tuple[int, ...]) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 class _LinearModel:
     """Shared behaviour of the linear models: ``f(x, dt) = F(dt) x`` and ``jacobian = F``."""
+
+    #: ``Q(dt)`` does not depend on the state (read by :mod:`kftrack.imm`).
+    state_dependent_noise: ClassVar[bool] = False
 
     ndim: int
     _k: int  # states per axis
@@ -444,6 +455,9 @@ class CoordinatedTurn:
     Give either (``sigma2``, ``sigma2_omega``) or (``q``, ``q_omega``).
     """
 
+    #: ``Q(dt)`` does not depend on the state (read by :mod:`kftrack.imm`).
+    state_dependent_noise: ClassVar[bool] = False
+
     ndim: int = 2
     q: float | None = None
     q_omega: float | None = None
@@ -487,9 +501,9 @@ class CoordinatedTurn:
         """Jacobian ``df/dx`` at ``x``, ``(..., n, n)``, including the ``omega`` column."""
         return self._call("J", x, dt)
 
-    def F(self, dt, x) -> np.ndarray:
-        """State-dependent transition matrix ``F(dt, omega)`` with ``f(x, dt) = F(dt, x) @ x``
-        (the ``omega`` of ``x``; the ``omega`` column is ``[0, ..., 0, 1]``), ``(..., n, n)``."""
+    def F(self, x, dt) -> np.ndarray:
+        """State-dependent transition matrix with ``f(x, dt) = F(x, dt) @ x`` (the ``omega`` of
+        ``x``; the ``omega`` column is ``[0, ..., 0, 1]``), ``(..., n, n)``."""
         J = self.jacobian(x, dt)
         J[..., :-1, -1] = 0.0
         return J
@@ -506,17 +520,20 @@ class CoordinatedTurn:
 
 @dataclass(frozen=True)
 class CoordinatedTurnPolar:
-    r"""The same coordinated turn in polar-velocity form, state ``[x, y, v, h, omega]``
-    (m, m, m/s, rad, rad/s; heading ``h`` from +x, counter-clockwise):
+    r"""The same coordinated turn in polar-velocity form, state ``[x, y, v, chi, omega]``
+    (m, m, m/s, rad, rad/s; heading :math:`\chi` from +x, counter-clockwise):
 
     .. math::
 
-        x^+ = x + \tfrac{2v}{\omega}\sin\tfrac{\omega T}{2}\cos\!\left(h + \tfrac{\omega T}{2}\right),\;
-        y^+ = y + \tfrac{2v}{\omega}\sin\tfrac{\omega T}{2}\sin\!\left(h + \tfrac{\omega T}{2}\right),\;
-        v^+ = v,\; h^+ = h + \omega T,\; \omega^+ = \omega .
+        x^+ = x + \tfrac{2v}{\omega}\sin\tfrac{\omega T}{2}\cos\!\left(\chi + \tfrac{\omega T}{2}\right),\;
+        y^+ = y + \tfrac{2v}{\omega}\sin\tfrac{\omega T}{2}\sin\!\left(\chi + \tfrac{\omega T}{2}\right),\;
+        v^+ = v,\; \chi^+ = \chi + \omega T,\; \omega^+ = \omega .
 
     Only the motion (``f``, ``jacobian``, ``H``); convert states with :func:`turn_state_to_polar`.
     """
+
+    #: ``Q(dt)`` does not depend on the state (read by :mod:`kftrack.imm`).
+    state_dependent_noise: ClassVar[bool] = False
 
     n: int = field(default=5, init=False)
 
@@ -541,14 +558,14 @@ class CoordinatedTurnPolar:
 
 
 def turn_state_to_polar(x) -> np.ndarray:
-    """``[x, vx, y, vy, omega]`` -> ``[x, y, v, h, omega]`` (speed, heading ``atan2(vy, vx)``)."""
+    """``[x, vx, y, vy, omega]`` -> ``[x, y, v, chi, omega]`` (speed, heading ``chi = atan2(vy, vx)``)."""
     x = as_vector(x, "x", 5)
     return np.stack([x[..., 0], x[..., 2], np.hypot(x[..., 1], x[..., 3]),
                      np.arctan2(x[..., 3], x[..., 1]), x[..., 4]], axis=-1)
 
 
 def turn_state_from_polar(s) -> np.ndarray:
-    """``[x, y, v, h, omega]`` -> ``[x, vx, y, vy, omega]``."""
+    """``[x, y, v, chi, omega]`` -> ``[x, vx, y, vy, omega]`` (heading ``chi`` in rad from +x)."""
     s = as_vector(s, "s", 5)
     return np.stack([s[..., 0], s[..., 2] * np.cos(s[..., 3]), s[..., 1],
                      s[..., 2] * np.sin(s[..., 3]), s[..., 4]], axis=-1)
@@ -622,7 +639,8 @@ class Turn3DAngles:
     r"""Seed 001's 3-D turn (Agner Júnior et al. 2019, §3): constant speed, heading rate
     :math:`\omega_\chi` and flight-path-angle rate :math:`\omega_\gamma`; the heading
     :math:`\chi = \operatorname{atan2}(v_y, v_x)` and path angle :math:`\gamma` are read from the
-    velocity. State ``[x, vx, y, vy, h, vh, omega_chi, omega_gamma]`` (m, m/s, rad/s).
+    velocity. State ``[x, vx, y, vy, h, vh, omega_chi, omega_gamma]`` (m, m/s, rad/s; ``h``, ``vh``
+    are the paper's height and vertical speed, not a heading).
 
     * :meth:`F`: the paper's eq. (30), :math:`F = I + TA + \tfrac{T^2}{2}A^2` with :math:`\chi`
       and the rates frozen (what the paper calls its Jacobian: the **partial** Jacobian);
@@ -641,22 +659,30 @@ class Turn3DAngles:
 
     Parameters
     ----------
-    form : ``"paper"`` (eq. 17, :math:`1/\sin\chi`, singular along :math:`\pm x`) or
-        ``"nonsingular"`` (see :func:`turn3d_angles_A`).
-    sigma2, sigma2_omega : the paper's direct-discrete noise (§3.4): variances of the white
+    form : ``"paper"`` (eq. 17, :math:`1/\sin\chi`, singular along :math:`\pm x`: its methods
+        raise ``ValueError`` at :math:`v_y = 0`, i.e. :math:`\chi = 0` or :math:`\pi`, where it
+        would return NaN/inf, and grow as :math:`1/\sin\chi` near there) or ``"nonsingular"``
+        (see :func:`turn3d_angles_A`).
+    sigma2, sigma2_omega : required, keyword only (0.0 for none): the paper's direct-discrete noise (§3.4): variances of the white
         acceleration per axis (**m²/s⁴**, :math:`\sigma_q^2`) and of the rate noise
         (**rad²/s⁴**), :math:`Q = \Gamma\,\mathrm{diag}(\sigma^2,\sigma^2,\sigma^2,
         \sigma_\omega^2,\sigma_\omega^2)\Gamma^\top`, :math:`\Gamma = (IT + \tfrac{T^2}{2}A)B_c`.
     """
 
     form: str = "nonsingular"
-    sigma2: float = 0.0
-    sigma2_omega: float = 0.0
+    sigma2: float = field(default=None, kw_only=True)
+    sigma2_omega: float = field(default=None, kw_only=True)
     n: int = field(default=8, init=False)
+    #: ``Q`` depends on the state: called as ``Q(x, dt)`` (read by :mod:`kftrack.imm`).
+    state_dependent_noise: ClassVar[bool] = True
 
     def __post_init__(self):
         if self.form not in ("paper", "nonsingular"):
             raise ValueError(f"form must be 'paper' or 'nonsingular', got {self.form!r}")
+        for name in ("sigma2", "sigma2_omega"):
+            if getattr(self, name) is None:
+                raise TypeError(f"Turn3DAngles requires {name}= (a discrete variance; pass 0.0 explicitly for no "
+                                f"process noise), got sigma2={self.sigma2!r}, sigma2_omega={self.sigma2_omega!r}")
         object.__setattr__(self, "sigma2", _nonneg(self.sigma2, "sigma2", 1)[0])
         object.__setattr__(self, "sigma2_omega", _nonneg(self.sigma2_omega, "sigma2_omega", 1)[0])
 
@@ -667,8 +693,16 @@ class Turn3DAngles:
 
     def _call(self, key: str, x, dt, form: str | None = None) -> np.ndarray:
         x = as_vector(x, "x", 8)
+        form = form or self.form
+        if form == "paper" and np.any(x[..., 3] == 0):
+            k = tuple(int(i) for i in np.argwhere(x[..., 3] == 0)[0])
+            chi = np.degrees(np.arctan2(0.0, x[(*k, 1)]))
+            raise ValueError(
+                f"x{list(k) if k else ''} has v_y = 0, heading chi = {chi:g} deg: the 'paper' form (eq. 17) divides "
+                "by sin(chi) = v_y/rho and is singular at chi = 0 and 180 deg (flight along +-x); use "
+                "form='nonsingular', the same model on the exact motion and regular there")
         with np.errstate(divide="ignore", invalid="ignore"):
-            return _angles_turn(form or self.form)[key](*np.moveaxis(x, -1, 0), _dt(dt))
+            return _angles_turn(form)[key](*np.moveaxis(x, -1, 0), _dt(dt))
 
     def F(self, x, dt) -> np.ndarray:
         """The paper's transition / partial Jacobian (eq. 30) at ``x``, ``(..., 8, 8)``."""
@@ -687,7 +721,8 @@ class Turn3DAngles:
         return self._call("f_taylor_exact", x, dt, "nonsingular")[..., 0]
 
     def Q(self, x, dt) -> np.ndarray:
-        """The paper's direct-discrete process noise at ``x`` (eq. 30's Γ, 8×5), ``(..., 8, 8)``."""
+        """The paper's direct-discrete process noise at ``x`` (eq. 30's Γ, 8×5), ``(..., 8, 8)``.
+        State dependent (``state_dependent_noise = True``): called as ``Q(x, dt)``."""
         d = _dt(dt, nonnegative=True, what=" for the process noise Q(dt)")
         G = self._call("Gamma", x, d)
         S = np.diag([self.sigma2] * 3 + [self.sigma2_omega] * 2)

@@ -62,7 +62,7 @@ def noisy_runs(rng: np.random.Generator, clean, sigma, runs: int) -> np.ndarray:
     return clean[:, None, :] + s * rng.standard_normal((T, int(runs), m))
 
 
-def per_run_error(estimate, truth, components: Sequence[int] | None = None, *, start: int = 0,
+def per_run_error(truth, estimate, components: Sequence[int] | None = None, *, start: int = 0,
                   root: bool = False) -> np.ndarray:
     r"""Time-averaged squared Euclidean error of each run,
 
@@ -71,11 +71,13 @@ def per_run_error(estimate, truth, components: Sequence[int] | None = None, *, s
     over the selected state components (study 000's eq. 73, in m² for positions), or its square
     root, the per-run RMSE, with ``root=True``.
 
+    Arguments in the order of :mod:`kftrack.metrics`: ``(truth, estimate, ...)``.
+
     Parameters
     ----------
-    estimate : (T, ..., n) estimates, time first.
     truth : (T, n') (shared by all runs) or (T, ..., n'); ``n' = n`` unless ``components``
         is given (the estimate may hold more, e.g. a turn rate ``omega`` last).
+    estimate : (T, ..., n) estimates, time first.
     components : indices of the state to compare (e.g. ``[0, 2]`` for the positions of
         ``[x, vx, y, vy]``), the same in ``estimate`` and ``truth``; default all.
     start : first step counted (skips a start-up transient), ``0 <= start < T``.
@@ -87,6 +89,9 @@ def per_run_error(estimate, truth, components: Sequence[int] | None = None, *, s
     """
     est = as_vector(estimate, "estimate")
     tru = as_vector(truth, "truth", None if components is not None else est.shape[-1])
+    if tru.ndim > est.ndim:
+        raise ValueError(f"truth has more axes than estimate (shapes {tru.shape} and {est.shape}); the order is "
+                         "per_run_error(truth, estimate, ...): truth (T, n') or (T, ..., n'), estimate (T, ..., n)")
     if est.ndim < 2 or tru.shape[0] != est.shape[0]:
         raise ValueError(f"estimate (T, ..., n) and truth (T, n) must share the time axis first, got shapes "
                          f"{est.shape} and {tru.shape}")
@@ -207,13 +212,17 @@ class Comparison:
         return tuple(sorted(self.names, key=self.mean))
 
 
-def compare(estimates: Mapping[str, np.ndarray], truth, components: Sequence[int] | None = None, *,
+def compare(truth, estimates: Mapping[str, np.ndarray], components: Sequence[int] | None = None, *,
             start: int = 0, root: bool = False) -> Comparison:
     """:class:`Comparison` of estimates ``(T, N, n)`` (one per filter name) against ``truth``
-    with :func:`per_run_error` (same ``components``, ``start``, ``root`` for every filter)."""
+    with :func:`per_run_error` (same ``components``, ``start``, ``root`` for every filter).
+    Arguments in the order of :mod:`kftrack.metrics`: ``(truth, estimates, ...)``."""
+    if isinstance(truth, Mapping):
+        raise TypeError("truth must be an array (T, n') or (T, ..., n'), got a mapping; the order is "
+                        "compare(truth, estimates, ...) with estimates a mapping name -> (T, N, n) array")
     if not isinstance(estimates, Mapping) or not estimates:
         raise TypeError(f"estimates must be a non-empty mapping name -> (T, N, n) array, got {type(estimates).__name__}")
-    return Comparison({name: per_run_error(x, truth, components, start=start, root=root)
+    return Comparison({name: per_run_error(truth, x, components, start=start, root=root)
                        for name, x in estimates.items()})
 
 

@@ -103,7 +103,7 @@ def plot_chi2_band(ax, t, mean, bounds, label: str | None = None, **kwargs):
 # --------------------------------------------------------------------------------------------
 # robot localization and SLAM (chapter 15)
 # --------------------------------------------------------------------------------------------
-__all__ += ["plot_walls", "plot_slam_map", "slam_animation"]
+__all__ += ["plot_walls", "plot_slam_map", "slam_animation", "animation_html"]
 
 
 def plot_walls(ax, walls, **kwargs):
@@ -166,3 +166,40 @@ def slam_animation(result, truth, landmarks, frames: int = 16, nsigma: float = 2
     anim = FuncAnimation(fig, draw, frames=len(steps), interval=400, blit=False)
     plt.close(fig)
     return anim
+
+
+# matplotlib's JavaScript player draws its buttons with Font Awesome 4 icons, loaded from a
+# CDN; the book's pages are offline, so the icons become plain Unicode glyphs instead.
+_PLAYER_ICONS = {
+    "fa fa-minus": "\u2212", "fa fa-fast-backward": "\u23ee", "fa fa-step-backward": "\u23ea",
+    "fa fa-play fa-flip-horizontal": "\u25c0", "fa fa-pause": "\u23f8", "fa fa-play": "\u25b6",
+    "fa fa-step-forward": "\u23e9", "fa fa-fast-forward": "\u23ed", "fa fa-plus": "+",
+}
+
+
+def animation_html(anim, **kwargs) -> str:
+    """The HTML of a matplotlib animation's JavaScript player, with nothing loaded from the
+    network.
+
+    ``anim.to_jshtml(**kwargs)`` links a Font Awesome style sheet on a CDN for its button
+    icons; this removes the link and writes each icon as a Unicode glyph, so the player works
+    on an offline page.
+
+    Parameters
+    ----------
+    anim : matplotlib.animation.Animation
+    **kwargs
+        Passed to ``anim.to_jshtml`` (e.g. ``default_mode="once"``).
+
+    Returns
+    -------
+    str
+        HTML to show with ``IPython.display.HTML``.
+    """
+    import re
+
+    page = anim.to_jshtml(**kwargs)
+    page = re.sub(r'<link rel="stylesheet"\s+href="https?://[^"]*font-awesome[^"]*">', "", page)
+    for cls, glyph in _PLAYER_ICONS.items():
+        page = page.replace(f'<i class="{cls}"></i>', glyph)
+    return page

@@ -44,8 +44,9 @@ from scipy.spatial import cKDTree
 
 from . import symbolic as sym
 from ._validate import as_float_array, as_vector, check_covariance, check_finite
-from .ekf import _gain_update, wrap_angle
+from .ekf import wrap_angle
 from .kalman import Update
+from .kernels import gain_update
 from .scanmatch import icp
 from .sensors.lidar import Lidar, scan_to_points
 from .sensors.radar import polar_measurement, polar_to_cartesian_expr
@@ -262,7 +263,7 @@ def _innovation(x, z, j):
 
 def _update(x, P, z, j, R) -> Update:
     y, H = _innovation(x, z, j)
-    u = _gain_update(x, P, y, H, R)
+    u = gain_update(x, P, y, H, R)
     u.x[..., 2] = wrap_angle(u.x[..., 2])
     return u
 
@@ -566,7 +567,7 @@ def icp_localization(scans, angles, map_points, odometry, dt: float, x0, P0, mod
         m = _icp_pose(scans[k], angles, map_points, tree, x, max_distance)
         y = m.pose - x
         y[2] = wrap_angle(y[2])
-        upd = _gain_update(x, P, y, H, R)
+        upd = gain_update(x, P, y, H, R)
         x, P = upd.x, upd.P
         x[2] = wrap_angle(x[2])
         for name, val in zip(Localization._fields, (x, P, m.pose, upd.nis, m.rmse)):

@@ -37,7 +37,7 @@ __all__ = [
     "SteadyState", "DiscreteSteadyState", "continuous_gain", "discrete_gain", "gain_sequence",
     "sampled_gain", "sampled_model", "run_steady_filter", "tracking_index", "alpha_beta_gains", "alpha_beta_gamma_gains",
     "estimator_system", "estimator_tf", "complementary_residual", "observability_matrix",
-    "observability_rank", "observability_gramian",
+    "observability_rank", "observability_gramian", "alpha_beta_lag", "is_detectable",
 ]
 
 
@@ -453,3 +453,70 @@ def observability_gramian(A: Callable[[float], np.ndarray], C, t0: float, t1: fl
     sol = scipy.integrate.solve_ivp(rhs, (t0, t1), y0, method="DOP853", rtol=rtol, atol=1e-12)
     W = sol.y[n * n:, -1].reshape(n, n)
     return 0.5 * (W + W.T)
+
+
+def alpha_beta_lag(alpha, beta, accel, dt) -> tuple[np.ndarray, np.ndarray]:
+    r"""Steady-state error of an α–β filter tracking a constant acceleration.
+
+    A target with constant acceleration :math:`a` is followed by the α–β filter
+    :math:`K = [\alpha, \beta/T]^\top` (constant-velocity model, sample time :math:`T`). The
+    error of the updated estimate, :math:`e = \hat x - x`, settles to the constant
+
+    .. math::
+
+        e_x = -\frac{1 - \alpha}{\beta}\,a T^2, \qquad
+        e_v = -\frac{\alpha - \beta/2}{\beta}\,a T
+
+    (Bar-Shalom, Li & Kirubarajan 2001, §6.5.2; Kalata 1984): the estimate lags behind an
+    accelerating target. Derivation: with :math:`x^-_k = F\hat x_{k-1}`, the truth obeys
+    :math:`x_k = F x_{k-1} + [T^2/2, T]^\top a`, so the steady error solves
+    :math:`e = (I - KH)(F e - [T^2/2, T]^\top a)`.
+
+    Parameters
+    ----------
+    alpha, beta : gains, ``0 < alpha < 1`` (or ``alpha = 1``), ``beta > 0``. Broadcast.
+    accel : acceleration (m/s²). dt : sample time :math:`T` (s), > 0.
+
+    Returns
+    -------
+    (e_x, e_v) : steady position error (m) and velocity error (m/s) of the updated estimate.
+    """
+    a_, b_ = as_float_array(alpha, "alpha"), as_float_array(beta, "beta")
+    acc, T = as_float_array(accel, "accel"), as_float_array(dt, "dt")
+    if np.any(~((a_ > 0) & (a_ <= 1))):
+        raise ValueError(f"alpha must lie in (0, 1], got {alpha!r}")
+    if np.any(~(b_ > 0)):
+        raise ValueError(f"beta must be > 0 (a zero beta has no steady state under acceleration), got {beta!r}")
+    if np.any(~(T > 0)):
+        raise ValueError(f"dt must be > 0, got {dt!r}")
+    return -(1 - a_) / b_ * acc * T**2, -(a_ - b_ / 2) / b_ * acc * T
+
+
+def is_detectable(A, C, discrete: bool = False, tol: float = 1e-9) -> bool:
+    r"""Whether the pair ``(A, C)`` is detectable (Popov–Belevitch–Hautus test).
+
+    Every mode that is not asymptotically stable must be observable:
+
+    .. math:: \operatorname{rank}\begin{bmatrix}\lambda I - A\\ C\end{bmatrix} = n
+              \quad\text{for every eigenvalue } \lambda \text{ of } A \text{ with }
+              \operatorname{Re}\lambda \ge 0 \ (\text{continuous}) \text{ or } |\lambda| \ge 1
+              \ (\text{discrete, } A = F).
+
+    Detectability (with stabilizability of the noise) is what the algebraic Riccati equation
+    needs; observability (full rank of :func:`observability_matrix`) is stronger: an
+    unobservable but stable mode is allowed. ``tol`` is the margin on the stability test and
+    the relative rank tolerance (singular values below ``tol * max(1, |lambda|, ||A||)``).
+    """
+    A = _square(A, "A")
+    n = A.shape[0]
+    C = as_matrix(C, "C", cols=n)
+    scale = max(1.0, float(np.linalg.norm(A, 2)))
+    for lam in np.linalg.eigvals(A):
+        unstable = abs(lam) >= 1 - tol if discrete else lam.real >= -tol
+        if not unstable:
+            continue
+        M = np.vstack([lam * np.eye(n) - A, C.astype(complex)])
+        sv = np.linalg.svd(M, compute_uv=False)
+        if sv[-1] <= tol * max(scale, abs(lam)):
+            return False
+    return True

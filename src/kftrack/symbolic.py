@@ -166,18 +166,19 @@ def coordinated_turn_transition(ndim: int = 2) -> tuple[sp.Matrix, sp.Matrix]:
 
 
 def polar_turn_state() -> sp.Matrix:
-    """State ``[x, y, v, h, omega]``: position, speed, heading (rad from +x, counter-clockwise), turn rate."""
-    return sp.Matrix([*sp.symbols("x y v h", real=True), omega])
+    """State ``[x, y, v, chi, omega]``: position, speed, heading chi (rad from +x, counter-clockwise), turn rate."""
+    return sp.Matrix([*sp.symbols("x y v chi", real=True), omega])
 
 
 def polar_turn_transition() -> tuple[sp.Matrix, sp.Matrix]:
     r"""Coordinated turn in polar-velocity form, exact for a constant turn rate:
-    :math:`x^+ = x + \frac{2v}{\omega}\sin\frac{\omega T}{2}\cos(h + \frac{\omega T}{2})`, same with sin
-    for :math:`y`, :math:`v^+ = v`, :math:`h^+ = h + \omega T`. Returns ``(state, f)``."""
+    :math:`x^+ = x + \frac{2v}{\omega}\sin\frac{\omega T}{2}\cos(\chi + \frac{\omega T}{2})`, same with sin
+    for :math:`y`, :math:`v^+ = v`, :math:`\chi^+ = \chi + \omega T` (heading :math:`\chi`, as in
+    chapters 6 and 12). Returns ``(state, f)``."""
     s = polar_turn_state()
-    x, y, v, h, w = s
+    x, y, v, chi, w = s
     chord = 2 * v / w * sp.sin(w * T / 2)
-    f = sp.Matrix([x + chord * sp.cos(h + w * T / 2), y + chord * sp.sin(h + w * T / 2), v, h + w * T, w])
+    f = sp.Matrix([x + chord * sp.cos(chi + w * T / 2), y + chord * sp.sin(chi + w * T / 2), v, chi + w * T, w])
     return s, f
 
 

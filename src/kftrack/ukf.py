@@ -35,31 +35,17 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validate import as_vector, check_covariance
-from .ekf import _angles, _call, _residual, _wrap_state
-from .kalman import (FilterResult, Update, _batch, _check_sequence, _check_state, _innovation_score, _run_sequence,
-                     _sym, _T)
+from ._validate import (as_matrix, as_vector, broadcast_batch, call_checked, check_angles, check_covariance, check_points,
+                        check_sequence, check_state)
+from .kalman import FilterResult, Update
+from .kernels import SigmaPoints, moments, mv, run_sequence, sigma_points, ukf_predict as _k_predict
+from .kernels import ukf_update as _k_update
+from .kernels import unscented as _k_unscented
 
 __all__ = ["SigmaPoints", "MerweScaledSigmaPoints", "JulierSigmaPoints", "Transformed",
            "weighted_moments", "unscented_transform", "ukf_predict", "ukf_update", "unscented_kalman_filter"]
 
 Vector = Callable[[np.ndarray], np.ndarray]
-
-
-class SigmaPoints(NamedTuple):
-    """Sigma points ``X`` ``(..., 2n+1, n)`` with mean weights ``Wm`` and covariance weights ``Wc`` ``(2n+1,)``."""
-
-    X: np.ndarray
-    Wm: np.ndarray
-    Wc: np.ndarray
-
-
-def _points(x: np.ndarray, P: np.ndarray, c: float, Wm: np.ndarray, Wc: np.ndarray) -> SigmaPoints:
-    L = np.linalg.cholesky(c * P)  # lower: columns are the offsets
-    offsets = _T(L)  # (..., n, n), row i = column i of L
-    zero = np.zeros(offsets.shape[:-2] + (1, x.shape[-1]))
-    X = x[..., None, :] + np.concatenate([zero, offsets, -offsets], axis=-2)
-    return SigmaPoints(X, Wm, Wc)
 
 
 @dataclass(frozen=True)
@@ -109,7 +95,7 @@ class MerweScaledSigmaPoints:
         """Sigma points of :math:`N(x, P)`: ``x`` ``(..., n)``, ``P`` ``(..., n, n)`` positive definite."""
         x, P, n = _check_points_input(x, P)
         Wm, Wc, c = self.weights(n)
-        return _points(x, P, c, Wm, Wc)
+        return sigma_points(x, P, c, Wm, Wc)
 
 
 @dataclass(frozen=True)
@@ -140,41 +126,18 @@ class JulierSigmaPoints:
         """Sigma points of :math:`N(x, P)`: ``x`` ``(..., n)``, ``P`` ``(..., n, n)`` positive definite."""
         x, P, n = _check_points_input(x, P)
         Wm, Wc, c = self.weights(n)
-        return _points(x, P, c, Wm, Wc)
+        return sigma_points(x, P, c, Wm, Wc)
 
 
 Points = MerweScaledSigmaPoints | JulierSigmaPoints
 
 
 def _check_points_input(x, P):
-    x, P, n = _check_state(x, P)
+    x, P, n = check_state(x, P)
     if np.min(np.linalg.eigvalsh(P)[..., 0]) <= 0:
         raise ValueError("P must be positive definite for the Cholesky factor of the sigma points, "
                          f"but its smallest eigenvalue is {np.min(np.linalg.eigvalsh(P)[..., 0]):.3g}")
     return x, P, n
-
-
-def _check_points(points) -> Points:
-    if points is None:
-        return MerweScaledSigmaPoints()
-    if not isinstance(points, (MerweScaledSigmaPoints, JulierSigmaPoints)):
-        raise TypeError(f"points must be MerweScaledSigmaPoints or JulierSigmaPoints, got {type(points).__name__}")
-    return points
-
-
-def _mean(Y: np.ndarray, Wm: np.ndarray, angles: tuple[int, ...]) -> np.ndarray:
-    y = np.einsum("i,...id->...d", Wm, Y)
-    if angles:
-        a = Y[..., angles]
-        y[..., angles] = np.arctan2(np.einsum("i,...id->...d", Wm, np.sin(a)),
-                                    np.einsum("i,...id->...d", Wm, np.cos(a)))
-    return y
-
-
-def _moments(Y, Wm, Wc, angles):
-    y = _mean(Y, Wm, angles)
-    dY = _residual(Y, y[..., None, :], angles)
-    return y, _sym(np.einsum("i,...id,...ie->...de", Wc, dY, dY)), dY
 
 
 def weighted_moments(Y, Wm, Wc, angle_components: Sequence[int] = ()) -> tuple[np.ndarray, np.ndarray]:
@@ -190,7 +153,7 @@ def weighted_moments(Y, Wm, Wc, angle_components: Sequence[int] = ()) -> tuple[n
     Wc = as_vector(Wc, "Wc", Y.shape[-2])
     if Wm.ndim != 1 or Wc.ndim != 1:
         raise ValueError(f"Wm and Wc must be 1-D, got shapes {Wm.shape} and {Wc.shape}")
-    y, C, _ = _moments(Y, Wm, Wc, _angles(angle_components, Y.shape[-1]))
+    y, C, _ = moments(Y, Wm, Wc, check_angles(angle_components, Y.shape[-1]))
     return y, C
 
 
@@ -202,17 +165,6 @@ class Transformed(NamedTuple):
     cov: np.ndarray
     cross: np.ndarray
     sigma: SigmaPoints
-
-
-def _ut(fn, x, P, points, x_angles, y_angles):
-    n = x.shape[-1]
-    Wm, Wc, c = points.weights(n)
-    sp = _points(x, P, c, Wm, Wc)
-    Y = fn(sp.X)
-    y, C, dY = _moments(Y, Wm, Wc, y_angles)
-    dX = _residual(sp.X, x[..., None, :], x_angles)
-    cross = np.einsum("i,...id,...ie->...de", Wc, dX, dY)
-    return Transformed(y, C, cross, sp)
 
 
 def unscented_transform(fn: Vector, x, P, points: Points | None = None,
@@ -233,34 +185,19 @@ def unscented_transform(fn: Vector, x, P, points: Points | None = None,
     Transformed
         ``(mean, cov, cross, sigma)``.
     """
-    points = _check_points(points)
+    points = check_points(points)
     x, P, n = _check_points_input(x, P)
     sp = points(x, P)
-    Y = _call(fn, sp.X, "fn", ())
+    Y = call_checked(fn, sp.X, "fn", ())
     if Y.ndim < 2 or Y.shape[:-1] != sp.X.shape[:-1]:
         raise ValueError(f"fn must map sigma points {sp.X.shape} to shape {sp.X.shape[:-1]} + (d,), got {Y.shape}")
-    return _ut(fn, x, P, points, _angles(state_angles, n, "state_angles"),
-               _angles(angle_components, Y.shape[-1]))
+    return Transformed(*_k_unscented(fn, x, P, points, check_angles(state_angles, n, "state_angles"),
+                                     check_angles(angle_components, Y.shape[-1])))
 
 
 # --------------------------------------------------------------------------------------------
 # the filter
 # --------------------------------------------------------------------------------------------
-def _ukf_predict(x, P, f, Q, points, x_angles):
-    t = _ut(f, x, P, points, x_angles, x_angles)
-    return t.mean, _sym(t.cov + Q)
-
-
-def _ukf_update(x, P, z, h, R, points, x_angles, z_angles) -> Update:
-    t = _ut(h, x, P, points, x_angles, z_angles)
-    S = _sym(t.cov + R)
-    y = _residual(z, t.mean, z_angles)
-    K = _T(np.linalg.solve(S, _T(t.cross)))  # K = Pxz S^{-1}, S symmetric
-    x_post = _wrap_state(x + (K @ y[..., None])[..., 0], x_angles)
-    P_post = _sym(P - K @ S @ _T(K))
-    return Update(x_post, P_post, y, S, K, *_innovation_score(y, S))
-
-
 def ukf_predict(x, P, f: Vector, Q, points: Points | None = None,
                 state_angles: Sequence[int] = ()) -> tuple[np.ndarray, np.ndarray]:
     r"""UKF time update: the unscented transform of :math:`N(x, P)` through ``f``, plus ``Q``.
@@ -273,15 +210,25 @@ def ukf_predict(x, P, f: Vector, Q, points: Points | None = None,
     points : sigma-point scheme (default :class:`MerweScaledSigmaPoints`).
     state_angles : state components that are angles (circular mean, wrapped residuals).
     """
-    points = _check_points(points)
+    points = check_points(points)
     x, P, n = _check_points_input(x, P)
     Q = check_covariance(Q, "Q", n)
-    _batch({"x": x.shape[:-1], "P": P.shape[:-2], "Q": Q.shape[:-2]})
-    _call(f, x, "f", (n,))
-    return _ukf_predict(x, P, f, Q, points, _angles(state_angles, n, "state_angles"))
+    broadcast_batch({"x": x.shape[:-1], "P": P.shape[:-2], "Q": Q.shape[:-2]})
+    call_checked(f, x, "f", (n,))
+    return _k_predict(x, P, f, Q, points, check_angles(state_angles, n, "state_angles"))
 
 
-def ukf_update(x, P, z, h: Vector, R, points: Points | None = None,
+def _measurement(h, n: int, m: int) -> Vector:
+    """``h`` as a callable: an ``(m, n)`` array is the linear measurement ``H x``."""
+    if callable(h):
+        return h
+    H = as_matrix(h, "h", m, n, origin=f"a linear measurement matrix H of shape (m, n), m = {m} from z, n = {n} from x")
+    if H.ndim != 2:
+        raise ValueError(f"h as a linear measurement matrix must have shape ({m}, {n}), got shape {H.shape}")
+    return lambda X: mv(H, X)
+
+
+def ukf_update(x, P, z, h: Vector | np.ndarray, R, points: Points | None = None,
                angle_components: Sequence[int] = (), state_angles: Sequence[int] = ()) -> Update:
     r"""UKF measurement update.
 
@@ -292,7 +239,8 @@ def ukf_update(x, P, z, h: Vector, R, points: Points | None = None,
     Parameters
     ----------
     x, P : prior mean ``(..., n)`` and covariance ``(..., n, n)``.
-    z : (..., m) measurement; ``h`` broadcasting ``(..., n) -> (..., m)``.
+    z : (..., m) measurement; ``h`` broadcasting ``(..., n) -> (..., m)``, or an ``(m, n)`` array
+        ``H`` for the linear measurement :math:`Hx`.
     R : (m, m) or (..., m, m) measurement noise, positive definite.
     points : sigma-point scheme (default :class:`MerweScaledSigmaPoints`).
     angle_components : measurement components that are angles.
@@ -303,18 +251,19 @@ def ukf_update(x, P, z, h: Vector, R, points: Points | None = None,
     kftrack.kalman.Update
         ``(x, P, y, S, K, nis, loglik)``.
     """
-    points = _check_points(points)
+    points = check_points(points)
     x, P, n = _check_points_input(x, P)
     z = as_vector(z, "z")
     m = z.shape[-1]
     R = check_covariance(R, "R", m, positive_definite=True)
-    _batch({"x": x.shape[:-1], "P": P.shape[:-2], "z": z.shape[:-1], "R": R.shape[:-2]})
-    _call(h, x, "h", (m,))
-    return _ukf_update(x, P, z, h, R, points, _angles(state_angles, n, "state_angles"),
-                       _angles(angle_components, m))
+    broadcast_batch({"x": x.shape[:-1], "P": P.shape[:-2], "z": z.shape[:-1], "R": R.shape[:-2]})
+    h = _measurement(h, n, m)
+    call_checked(h, x, "h", (m,))
+    return _k_update(x, P, z, h, R, points, check_angles(state_angles, n, "state_angles"),
+                       check_angles(angle_components, m))
 
 
-def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector, R, points: Points | None = None,
+def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector | np.ndarray, R, points: Points | None = None,
                             angle_components: Sequence[int] = (), state_angles: Sequence[int] = (),
                             *, progress: bool = False) -> FilterResult:
     """Filter a whole measurement sequence with the UKF: update with ``zs[k]``, then predict.
@@ -322,16 +271,18 @@ def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector, R, points: Poin
     Same conventions as :func:`kftrack.kalman.kalman_filter` and
     :func:`kftrack.ekf.extended_kalman_filter`: time first, ``x0`` the prior of step 0, rows
     of NaN missing, one broadcast call per step for all batch members (Monte Carlo runs).
+    ``h`` is a broadcasting callable or an ``(m, n)`` array ``H`` (linear measurement :math:`Hx`).
     ``progress=True`` shows a tqdm bar.
     """
-    points = _check_points(points)
-    zs, x0, P0, Q, R, n, m, batch, row_missing = _check_sequence(zs, x0, P0, Q, R)
+    points = check_points(points)
+    zs, x0, P0, Q, R, n, m, batch, row_missing = check_sequence(zs, x0, P0, Q, R)
     _check_points_input(x0, P0)
-    x_angles = _angles(state_angles, n, "state_angles")
-    z_angles = _angles(angle_components, m)
+    x_angles = check_angles(state_angles, n, "state_angles")
+    z_angles = check_angles(angle_components, m)
     xb = np.broadcast_to(x0, batch + (n,))
-    _call(f, xb, "f", (n,))
-    _call(h, xb, "h", (m,))
-    return _run_sequence(zs, x0, P0, batch, row_missing,
-                lambda x, P: _ukf_predict(x, P, f, Q, points, x_angles),
-                lambda x, P, z: _ukf_update(x, P, z, h, R, points, x_angles, z_angles), progress)
+    call_checked(f, xb, "f", (n,))
+    h = _measurement(h, n, m)
+    call_checked(h, xb, "h", (m,))
+    return run_sequence(zs, x0, P0, batch, row_missing,
+                        lambda x, P: _k_predict(x, P, f, Q, points, x_angles),
+                        lambda x, P, z: _k_update(x, P, z, h, R, points, x_angles, z_angles), progress)

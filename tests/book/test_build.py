@@ -5,34 +5,9 @@ Runs after the unit tests and nbval (see the Makefile). Nothing executes during 
 """
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
-import pytest
-import yaml
-
-ROOT = Path(__file__).resolve().parents[2]
-HTML = ROOT / "_build" / "html"
-
-
-def _toc_files() -> list[str]:
-    toc = yaml.safe_load((ROOT / "_toc.yml").read_text())
-    files = [toc["root"]]
-    for part in toc.get("parts", []):
-        files += [c["file"] for c in part.get("chapters", [])]
-    return files
-
-
-@pytest.fixture(scope="module")
-def built_site() -> Path:
-    exe = Path(sys.executable).with_name("jupyter-book")
-    proc = subprocess.run([str(exe), "build", str(ROOT), "-W", "-n", "--keep-going"],
-                          capture_output=True, text=True, cwd=ROOT)
-    if proc.returncode != 0:
-        reports = "\n".join(p.read_text() for p in (HTML / "reports").rglob("*.log")) if (HTML / "reports").exists() else ""
-        pytest.fail(f"jupyter-book build failed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}\n{reports}")
-    return HTML
+from sitepages import toc_files as _toc_files
 
 
 def test_every_toc_page_is_built(built_site: Path) -> None:

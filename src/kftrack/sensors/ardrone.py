@@ -35,7 +35,7 @@ from ..datasets import data_dir, data_path
 from ..gaussians import MomentTest, moment_test
 
 __all__ = [
-    "CHANNELS", "RAW_UNITS", "SI_UNITS", "EXPERIMENTS", "STUDY_TABLES", "STUDY_ALTITUDE_UNIT",
+    "CHANNELS", "RAW_UNITS", "SI_UNITS", "EXPERIMENTS", "STUDY_TABLES", "STUDY_INCLINOMETER_VAR", "STUDY_ALTITUDE_UNIT",
     "ALTITUDE_LSB", "ACCEL_SCALES", "ALTIMETER_MIN_RANGE", "ALTIMETER_MAX_RANGE",
     "SAMPLE_RATE", "SAMPLES", "DEFAULT_SEED", "CORRUPT_PER_FILE",
     "si_scale", "to_si", "study_moments", "decode_altitude", "encode_altitude", "altitude_study_convention",
@@ -78,6 +78,11 @@ STUDY_TABLES: dict[str, dict[str, tuple[float, float]]] = {
 }
 """The study's Tables 1–3 as printed: ``STUDY_TABLES[experiment][channel] = (mean, variance)``
 in raw units (the tables' "Covariância" row is the variance of each channel)."""
+
+STUDY_INCLINOMETER_VAR: dict[str, float] = {"pitch": 1.9932e-5, "roll": 2.4310e-5}
+"""The study's measured variances (rad², hover, experiment C) of the accelerometer-derived
+("inclinometer") pitch and roll angles, Sect. 2.4 (notes 004 §2). Its filters inflate them
+by a tuning factor of 10⁴ (chapters 3 and 14)."""
 
 STUDY_ALTITUDE_UNIT = 1.4024e-42
 """The study's altitude divisor (raw value per metre): the mean raw reading of the 1 m hover."""

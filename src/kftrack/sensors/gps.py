@@ -136,7 +136,7 @@ def parse_sentence(line: str | bytes) -> tuple[str, dict | None]:
     (status, fields)
         ``status`` is ``"ok"`` or one of :data:`SKIP_REASONS`. For ``"ok"``, ``fields`` is a dict
         with ``type`` (``"RMC"`` or ``"GGA"``), ``talker``, ``time`` (seconds of the UTC day),
-        ``date`` (a :class:`datetime.date` or None), ``lat``, ``lon`` (degrees), ``speed`` (m/s,
+        ``date`` (a ``datetime.date`` or None), ``lat``, ``lon`` (degrees), ``speed`` (m/s,
         NaN for GGA), ``course`` (rad clockwise from North, NaN if empty or GGA) and ``quality``
         (int, None for RMC without mode field). Otherwise ``fields`` is None.
 

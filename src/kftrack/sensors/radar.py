@@ -174,6 +174,11 @@ class Radar:
         sig = tuple(float(s) for s in np.atleast_1d(as_float_array(self.sigmas, "sigmas")))
         if len(sig) != d or not all(np.isfinite(s) and s > 0 for s in sig):
             raise ValueError(f"sigmas must be {d} positive standard deviations (range, angles), got {self.sigmas!r}")
+        big = [i for i in range(1, d) if sig[i] > np.pi]
+        if big:  # an angle noise above pi rad is no angle noise: degrees passed for radians
+            raise ValueError(f"sigmas[{big[0]}] is an angle standard deviation in radians and must be at most pi, got "
+                             f"{sig[big[0]]!r} rad in sigmas={self.sigmas!r}; convert degrees with np.deg2rad, "
+                             f"e.g. sigmas=({sig[0]!r}, np.deg2rad({sig[big[0]]!r}))")
         idx = tuple(int(i) for i in self.position_indices)
         if len(idx) != d or min(idx) < 0 or len(set(idx)) != d:
             raise ValueError(f"position_indices must be {d} distinct non-negative indices, got {self.position_indices!r}")

@@ -1,0 +1,720 @@
+r"""Measurement-to-track association in clutter: validation gates, nearest and strongest
+neighbour, the probabilistic data association filter (PDAF) and IMM-PDAF, and, for several
+targets, global nearest neighbour (GNN), joint PDA (JPDA) and the GOSPA/OSPA metrics.
+
+A **scan** holds a variable number of measurements. To filter many Monte Carlo runs at once
+the scans are **padded**: ``Z`` has shape ``(..., M_max, m)`` and a boolean ``mask``
+``(..., M_max)`` marks the real measurements (padding entries may hold anything finite; they are
+never used). Every single-target function broadcasts over the leading axes ``...`` with no
+Python loop over runs.
+
+Equations (Bar-Shalom & Tse 1975; Bar-Shalom, Daum & Huang 2009; Bar-Shalom, Willett & Tian
+2011, ch. 3 and 6), with predicted measurement :math:`\hat z = Hx`, innovations
+:math:`\nu_i = z_i - \hat z`, :math:`S = HPH^\top + R`, :math:`K = PH^\top S^{-1}`:
+
+* gate: :math:`d_i^2 = \nu_i^\top S^{-1}\nu_i \le \gamma`, :math:`\gamma = \chi^2_m{}^{-1}(P_G)`,
+  of volume :math:`V = c_m\,|\gamma S|^{1/2}`, :math:`c_m = \pi^{m/2}/\Gamma(m/2+1)`;
+* association probabilities, for the ``m_k`` gated measurements,
+  :math:`\beta_i = L_i / (1 - P_D P_G + \sum_j L_j)`, :math:`\beta_0 = (1 - P_D P_G)/(\dots)`,
+  with :math:`L_i = P_D\,N(\nu_i; 0, S)/\lambda`; the **parametric** PDAF takes the Poisson
+  clutter density :math:`\lambda` (per unit measurement volume), the **non-parametric** one
+  :math:`\lambda = m_k / V`;
+* update: :math:`\nu = \sum_i \beta_i\nu_i`, :math:`x^+ = x + K\nu`,
+  :math:`P^+ = \beta_0 P + (1-\beta_0) P^c + K\big[\sum_i\beta_i\nu_i\nu_i^\top - \nu\nu^\top\big]K^\top`,
+  where :math:`P^c` is the Kalman (Joseph-form) posterior covariance and the bracket is the
+  **spread of the innovations**.
+
+The state order follows the package (``[x, vx, y, vy]``); ``H`` picks the measured components.
+"""
+from __future__ import annotations
+
+import itertools
+from typing import NamedTuple
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.special import gammaln
+from scipy.stats import chi2
+
+from ._validate import as_float_array, as_vector, check_covariance
+from .kalman import update as kalman_update
+
+__all__ = [
+    "gate_threshold", "unit_ball_volume", "gate_volume", "check_scan", "Gate", "validation_gate",
+    "NeighbourUpdate", "nearest_neighbour", "strongest_neighbour",
+    "PDAUpdate", "pda_weights", "pdaf_update", "imm_pdaf_update",
+    "gnn_assignment", "JPDAUpdate", "jpda_update", "GOSPA", "gospa", "ospa",
+    "ScanFilterResult", "filter_scans", "jpda_filter", "gnn_filter",
+]
+
+_LOG_2PI = np.log(2.0 * np.pi)
+
+
+# --------------------------------------------------------------------------------------------
+# argument checks
+# --------------------------------------------------------------------------------------------
+def _check_prob_gate(P_G) -> float:
+    v = float(as_float_array(P_G, "P_G"))
+    if not 0.0 < v < 1.0:
+        raise ValueError(f"P_G (gate probability) must lie in the open interval (0, 1), got {P_G!r}")
+    return v
+
+
+def _check_prob_detect(P_D) -> float:
+    v = float(as_float_array(P_D, "P_D"))
+    if not 0.0 < v <= 1.0:
+        raise ValueError(f"P_D (detection probability) must lie in (0, 1], got {P_D!r}")
+    return v
+
+
+def _check_density(clutter_density):
+    """``None`` (non-parametric) or an array ``>= 0`` broadcasting over the batch axes."""
+    if clutter_density is None:
+        return None
+    lam = as_float_array(clutter_density, "clutter_density")
+    if not np.all(np.isfinite(lam)) or np.any(lam < 0):
+        raise ValueError("clutter_density (Poisson false alarms per unit measurement volume) must be finite "
+                         f"and >= 0, got {clutter_density!r}")
+    return lam
+
+
+def check_scan(Z, mask=None, m: int | None = None, name: str = "Z") -> tuple[np.ndarray, np.ndarray]:
+    """A padded scan ``Z`` ``(..., M_max, m)`` and its boolean ``mask`` ``(..., M_max)``.
+
+    ``mask`` defaults to all true (every row a measurement). Padding rows (mask false) are set to
+    zero in the returned copy so they cannot produce NaN downstream.
+    """
+    Z = as_float_array(Z, name)
+    if Z.ndim < 2:
+        raise ValueError(f"{name} must have shape (..., M_max, m) (a padded set of measurements), got shape {Z.shape}")
+    if m is not None and Z.shape[-1] != m:
+        raise ValueError(f"{name} must have shape (..., M_max, {m}) (measurements of width m = {m} from H), "
+                         f"got shape {Z.shape}")
+    if mask is None:
+        mask = np.ones(Z.shape[:-1], dtype=bool)
+    else:
+        mask = np.asarray(mask)
+        if mask.dtype != bool:
+            raise TypeError(f"mask must be a boolean array (True = real measurement), got dtype {mask.dtype}")
+        try:
+            mask = np.broadcast_to(mask, Z.shape[:-1])
+        except ValueError:
+            raise ValueError(f"mask must have shape {Z.shape[:-1]} (the leading axes of {name}), "
+                             f"got shape {mask.shape}") from None
+    if not np.all(np.isfinite(Z[mask])):
+        raise ValueError(f"{name} must be finite where mask is true")
+    return np.where(mask[..., None], Z, 0.0), mask
+
+
+# --------------------------------------------------------------------------------------------
+# the validation gate
+# --------------------------------------------------------------------------------------------
+def gate_threshold(P_G: float, m: int) -> float:
+    r"""Threshold :math:`\gamma` with :math:`P\{\chi^2_m \le \gamma\} = P_G`."""
+    P_G = _check_prob_gate(P_G)
+    if int(m) != m or m < 1:
+        raise ValueError(f"m (measurement dimension) must be a positive integer, got {m!r}")
+    return float(chi2.ppf(P_G, int(m)))
+
+
+def unit_ball_volume(m: int) -> float:
+    r"""Volume of the unit ball in :math:`\mathbb R^m`, :math:`c_m = \pi^{m/2}/\Gamma(m/2+1)`
+    (2, π, 4π/3 for m = 1, 2, 3)."""
+    if int(m) != m or m < 1:
+        raise ValueError(f"m (dimension) must be a positive integer, got {m!r}")
+    return float(np.exp(0.5 * m * np.log(np.pi) - gammaln(0.5 * m + 1.0)))
+
+
+def gate_volume(S, P_G: float) -> np.ndarray:
+    r"""Volume of the ellipsoidal gate :math:`V = c_m |\gamma S|^{1/2} = c_m\gamma^{m/2}|S|^{1/2}`.
+
+    Parameters
+    ----------
+    S : (..., m, m) innovation covariance, positive definite.
+    P_G : gate probability in (0, 1).
+
+    Returns
+    -------
+    (...) gate volumes, in measurement units to the power m (m² for a planar position).
+    """
+    S = check_covariance(S, "S", positive_definite=True)
+    m = S.shape[-1]
+    gamma = gate_threshold(P_G, m)
+    _, logdet = np.linalg.slogdet(S)
+    return unit_ball_volume(m) * gamma ** (0.5 * m) * np.exp(0.5 * logdet)
+
+
+class Gate(NamedTuple):
+    """Gating of a padded scan against one prediction (batch axes ``...``).
+
+    Attributes
+    ----------
+    zhat : (..., m) predicted measurement; ``S`` (..., m, m) innovation covariance.
+    nu : (..., M_max, m) innovations (zero at padding); ``d2`` (..., M_max) their squared
+        Mahalanobis distances (``inf`` at padding).
+    inside : (..., M_max) true for real measurements with ``d2 <= gamma``.
+    gamma : the threshold; ``volume`` (...) the gate volume.
+    logN : (..., M_max) Gaussian log-likelihoods ``log N(nu; 0, S)`` (``-inf`` at padding).
+    """
+
+    zhat: np.ndarray
+    S: np.ndarray
+    nu: np.ndarray
+    d2: np.ndarray
+    inside: np.ndarray
+    gamma: float
+    volume: np.ndarray
+    logN: np.ndarray
+
+
+def _gate(x, P, Z, mask, H, R, P_G):
+    """Kernel of :func:`validation_gate` (no checks); also returns the Kalman update ``u``
+    (``y = 0``) whose ``K``, ``S`` and ``P`` the PDAF reuses."""
+    zhat = (H @ x[..., None])[..., 0]
+    u = kalman_update(x, P, zhat, H, R)
+    S = u.S
+    m = Z.shape[-1]
+    nu = np.where(mask[..., None], Z - zhat[..., None, :], 0.0)
+    Sinv_nu = np.linalg.solve(S[..., None, :, :], nu[..., None])[..., 0]
+    d2 = np.where(mask, np.einsum("...i,...i->...", nu, Sinv_nu), np.inf)
+    gamma = float(chi2.ppf(P_G, m))
+    _, logdet = np.linalg.slogdet(S)
+    volume = unit_ball_volume(m) * gamma ** (0.5 * m) * np.exp(0.5 * logdet)
+    logN = -0.5 * (d2 + (logdet + m * _LOG_2PI)[..., None])
+    return Gate(zhat, S, nu, d2, mask & (d2 <= gamma), gamma, volume, logN), u
+
+
+def _check_filter_args(x, P, Z, mask, H, R):
+    x = as_vector(x, "x")
+    n = x.shape[-1]
+    P = check_covariance(P, "P", n, origin=f"n = {n} from x")
+    H = as_float_array(H, "H")
+    if H.ndim < 2 or H.shape[-1] != n:
+        raise ValueError(f"H must have shape (m, {n}) (n = {n} from x), got shape {H.shape}")
+    m = H.shape[-2]
+    R = check_covariance(R, "R", m, positive_definite=True, origin=f"m = {m} from H")
+    Z, mask = check_scan(Z, mask, m)
+    return x, P, Z, mask, H, R
+
+
+def validation_gate(x, P, Z, H, R, *, P_G: float, mask=None) -> Gate:
+    r"""Ellipsoidal chi-square validation gate of probability ``P_G``.
+
+    A measurement is validated when :math:`(z-\hat z)^\top S^{-1}(z-\hat z) \le \gamma`,
+    :math:`\gamma = \chi^2_m{}^{-1}(P_G)`; a target measurement falls inside with probability
+    ``P_G`` when the filter is consistent.
+
+    Parameters
+    ----------
+    x : (..., n) predicted state; ``P`` (..., n, n) its covariance.
+    Z : (..., M_max, m) padded measurements; ``mask`` (..., M_max) bool, default all true.
+    H : (m, n) measurement matrix; ``R`` (m, m) measurement-noise covariance.
+    P_G : gate probability in (0, 1).
+    """
+    P_G = _check_prob_gate(P_G)
+    x, P, Z, mask, H, R = _check_filter_args(x, P, Z, mask, H, R)
+    return _gate(x, P, Z, mask, H, R, P_G)[0]
+
+
+# --------------------------------------------------------------------------------------------
+# nearest and strongest neighbour
+# --------------------------------------------------------------------------------------------
+class NeighbourUpdate(NamedTuple):
+    """Result of a nearest/strongest-neighbour update: ``x`` (..., n), ``P`` (..., n, n),
+    ``index`` (...) of the chosen measurement (-1 when the gate is empty: then ``x, P`` are the
+    prediction), and the :class:`Gate`."""
+
+    x: np.ndarray
+    P: np.ndarray
+    index: np.ndarray
+    gate: Gate
+
+
+def _select_update(x, P, g, u, idx):
+    has = idx >= 0
+    nu = np.take_along_axis(g.nu, np.maximum(idx, 0)[..., None, None], axis=-2)[..., 0, :]
+    xk = x + (u.K @ nu[..., None])[..., 0]
+    x_out = np.where(has[..., None], xk, x)
+    P_out = np.where(has[..., None, None], u.P, P)
+    return NeighbourUpdate(x_out, P_out, idx, g)
+
+
+def nearest_neighbour(x, P, Z, H, R, *, P_G: float, mask=None) -> NeighbourUpdate:
+    r"""Nearest-neighbour filter: update with the gated measurement of smallest
+    :math:`d^2 = \nu^\top S^{-1}\nu`, as if it were certainly the target's (Kalman update);
+    an empty gate gives the prediction. Arguments as in :func:`validation_gate`."""
+    P_G = _check_prob_gate(P_G)
+    x, P, Z, mask, H, R = _check_filter_args(x, P, Z, mask, H, R)
+    g, u = _gate(x, P, Z, mask, H, R, P_G)
+    d2 = np.where(g.inside, g.d2, np.inf)
+    idx = np.where(g.inside.any(-1), np.argmin(d2, axis=-1), -1)
+    return _select_update(x, P, g, u, idx)
+
+
+def strongest_neighbour(x, P, Z, H, R, amplitude, *, P_G: float, mask=None) -> NeighbourUpdate:
+    r"""Strongest-neighbour filter: update with the gated measurement of largest signal
+    ``amplitude`` (..., M_max) (e.g. the detector's power); an empty gate gives the prediction."""
+    P_G = _check_prob_gate(P_G)
+    x, P, Z, mask, H, R = _check_filter_args(x, P, Z, mask, H, R)
+    amplitude = as_float_array(amplitude, "amplitude")
+    try:
+        amplitude = np.broadcast_to(amplitude, Z.shape[:-1])
+    except ValueError:
+        raise ValueError(f"amplitude must have shape {Z.shape[:-1]} (one value per row of Z), "
+                         f"got shape {amplitude.shape}") from None
+    g, u = _gate(x, P, Z, mask, H, R, P_G)
+    a = np.where(g.inside, amplitude, -np.inf)
+    idx = np.where(g.inside.any(-1), np.argmax(a, axis=-1), -1)
+    return _select_update(x, P, g, u, idx)
+
+
+# --------------------------------------------------------------------------------------------
+# PDAF
+# --------------------------------------------------------------------------------------------
+class PDAUpdate(NamedTuple):
+    """Result of a PDAF update (batch axes ``...``).
+
+    Attributes
+    ----------
+    x : (..., n) posterior mean; ``P`` (..., n, n) posterior covariance.
+    beta : (..., M_max + 1) association probabilities, ``beta[..., 0]`` = no gated measurement
+        is the target's, ``beta[..., 1 + i]`` = measurement ``i`` is (0 outside the gate).
+    gate : the :class:`Gate`.
+    spread : (..., n, n) the spread-of-innovations term
+        :math:`K[\\sum\\beta_i\\nu_i\\nu_i^\\top - \\nu\\nu^\\top]K^\\top`.
+    loglik : (...) log of the scan's likelihood ratio against "all clutter",
+        :math:`\\log(1 - P_D P_G + \\sum_i L_i)`; the mode likelihood of IMM-PDAF.
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    beta: np.ndarray
+    gate: Gate
+    spread: np.ndarray
+    loglik: np.ndarray
+
+
+def _logsumexp(a, axis=-1):
+    amax = np.max(a, axis=axis, keepdims=True)
+    amax = np.where(np.isfinite(amax), amax, 0.0)
+    with np.errstate(divide="ignore"):
+        return np.log(np.sum(np.exp(a - amax), axis=axis)) + amax[..., 0]
+
+
+def _log_pda_terms(g: Gate, P_D, P_G, lam):
+    """``log L_0 = log(1 - P_D P_G)`` and ``log L_i`` (..., M_max), ``-inf`` outside the gate.
+
+    ``lam`` is ``None`` (non-parametric: ``m_k / V``) or an array ``>= 0``; ``lam = 0`` (no
+    clutter) gives weights proportional to ``N_i`` and, when the gate holds a measurement,
+    ``beta_0 = 0`` exactly."""
+    mk = g.inside.sum(-1)
+    if lam is None:
+        with np.errstate(divide="ignore"):
+            log_lam = np.log(mk) - np.log(g.volume)
+    else:
+        with np.errstate(divide="ignore"):
+            log_lam = np.log(lam) * np.ones(mk.shape)
+    zero = np.isneginf(log_lam)
+    log_lam = np.where(zero, 0.0, log_lam)
+    logL = np.where(g.inside, np.log(P_D) + g.logN - log_lam[..., None], -np.inf)
+    with np.errstate(divide="ignore"):
+        logL0 = np.log1p(-P_D * P_G) * np.ones(mk.shape)
+    logL0 = np.where(zero & (mk > 0), -np.inf, logL0)
+    return logL0, logL, log_lam, zero
+
+
+def pda_weights(g: Gate, *, P_D: float, P_G: float, clutter_density=None) -> np.ndarray:
+    r"""PDAF association probabilities :math:`(\beta_0, \beta_1, \dots)` ``(..., M_max + 1)``
+    from a :class:`Gate` (see the module docstring); they sum to one."""
+    P_D, P_G, lam = _check_prob_detect(P_D), _check_prob_gate(P_G), _check_density(clutter_density)
+    return _pda_beta(g, P_D, P_G, lam)[0]
+
+
+def _pda_beta(g, P_D, P_G, lam):
+    logL0, logL, log_lam, zero = _log_pda_terms(g, P_D, P_G, lam)
+    logs = np.concatenate([logL0[..., None], logL], axis=-1)
+    total = _logsumexp(logs)
+    beta = np.exp(logs - total[..., None])
+    # likelihood ratio against all clutter; with lam = 0 the ratio is infinite: report the
+    # unnormalised log of the mixture density instead (useful only for comparing modes)
+    loglik = np.where(zero, _logsumexp(logs), total)
+    return beta, loglik
+
+
+def _pda_combine(x, P, u, nu, beta):
+    """Kernel of the PDAF state update from innovations ``nu`` (..., M, m) and ``beta``
+    (..., M + 1); ``u`` is the Kalman update with ``y = 0`` (``K``, Joseph ``P``)."""
+    b0, b = beta[..., 0], beta[..., 1:]
+    nu_c = np.einsum("...i,...ij->...j", b, nu)
+    x_post = x + (u.K @ nu_c[..., None])[..., 0]
+    outer = np.einsum("...i,...ij,...ik->...jk", b, nu, nu) - nu_c[..., :, None] * nu_c[..., None, :]
+    spread = u.K @ outer @ np.swapaxes(u.K, -1, -2)
+    P_post = b0[..., None, None] * P + (1.0 - b0)[..., None, None] * u.P + spread
+    return x_post, 0.5 * (P_post + np.swapaxes(P_post, -1, -2)), spread
+
+
+def pdaf_update(x, P, Z, H, R, *, P_D: float, P_G: float, clutter_density=None, mask=None) -> PDAUpdate:
+    r"""Probabilistic data association filter update (Bar-Shalom & Tse 1975).
+
+    Parameters
+    ----------
+    x : (..., n) predicted state; ``P`` (..., n, n) its covariance.
+    Z : (..., M_max, m) padded scan; ``mask`` (..., M_max) bool (default all true).
+    H : (m, n) measurement matrix; ``R`` (m, m) measurement-noise covariance.
+    P_D : detection probability in (0, 1].
+    P_G : gate probability in (0, 1).
+    clutter_density : Poisson clutter density :math:`\lambda` per unit measurement volume
+        (scalar or broadcasting over ``...``; ``>= 0``) for the parametric PDAF, or ``None`` for
+        the non-parametric PDAF (:math:`\lambda = m_k/V`).
+
+    Returns
+    -------
+    PDAUpdate
+        With :math:`\lambda \to 0` and ``P_D = 1`` a single gated measurement gives exactly the
+        Kalman update of :func:`kftrack.kalman.update`.
+    """
+    P_D, P_G, lam = _check_prob_detect(P_D), _check_prob_gate(P_G), _check_density(clutter_density)
+    x, P, Z, mask, H, R = _check_filter_args(x, P, Z, mask, H, R)
+    g, u = _gate(x, P, Z, mask, H, R, P_G)
+    beta, loglik = _pda_beta(g, P_D, P_G, lam)
+    xp, Pp, spread = _pda_combine(x, P, u, g.nu, beta)
+    return PDAUpdate(xp, Pp, beta, g, spread, loglik)
+
+
+def imm_pdaf_update(estimator, state, Z, *, P_D: float, P_G: float, clutter_density, mask=None):
+    r"""IMM-PDAF measurement update (Houles & Bar-Shalom 1989): a PDAF update in every mode,
+    mode likelihoods :math:`\Lambda_j = 1 - P_D P_G + \sum_i L_{ij}` (the scan's likelihood ratio
+    against "all clutter" under mode ``j``), :math:`\mu_j \propto \Lambda_j\bar c_j`.
+
+    Parameters
+    ----------
+    estimator : a :class:`kftrack.imm.IMM` whose modes have linear measurements (attributes
+        ``H`` and ``R``, e.g. :class:`~kftrack.imm.KalmanMode`).
+    state : its :class:`~kftrack.imm.IMMState` after :meth:`~kftrack.imm.IMM.predict`.
+    Z, mask : the padded scan, as in :func:`pdaf_update`.
+    clutter_density : the parametric :math:`\lambda` (required: the non-parametric
+        :math:`m_k/V` differs between modes and would make their likelihoods incomparable).
+
+    Returns
+    -------
+    IMMState
+        Built by :meth:`kftrack.imm.IMM.from_modes` (combined ``x``, ``P``, ``mu`` consistent;
+        its ``loglik`` is NaN: the per-mode :math:`\log\Lambda_j` are the ``loglik`` of
+        :func:`pdaf_update` in each mode).
+    """
+    if clutter_density is None:
+        raise ValueError("clutter_density must be given (the parametric PDAF) for IMM-PDAF, got None")
+    P_D, P_G, lam = _check_prob_detect(P_D), _check_prob_gate(P_G), _check_density(clutter_density)
+    xs, Ps, logliks = [], [], []
+    for j, mode in enumerate(estimator.modes):
+        if not (hasattr(mode, "H") and hasattr(mode, "R")):
+            raise TypeError(f"estimator.modes[{j}] must have a linear measurement (attributes H, R), "
+                            f"got {type(mode).__name__}")
+        if j == 0:
+            Zc, mask = check_scan(Z, mask, mode.H.shape[0])
+        g, u = _gate(state.xs[j], state.Ps[j], Zc, mask, mode.H, mode.R, P_G)
+        beta, loglik = _pda_beta(g, P_D, P_G, lam)
+        xp, Pp, _ = _pda_combine(state.xs[j], state.Ps[j], u, g.nu, beta)
+        xs.append(xp)
+        Ps.append(Pp)
+        logliks.append(loglik)
+    loglik = np.stack(logliks, axis=-1)
+    joint = state.log_mu + loglik
+    log_mu = joint - _logsumexp(joint)[..., None]
+    return estimator.from_modes(xs, Ps, np.exp(log_mu))
+
+
+# --------------------------------------------------------------------------------------------
+# several targets: GNN and JPDA
+# --------------------------------------------------------------------------------------------
+def gnn_assignment(cost, gate_mask) -> np.ndarray:
+    r"""Global nearest neighbour: the one-to-one assignment of tracks to gated measurements that
+    minimises the total cost, each track free to take no measurement.
+
+    Parameters
+    ----------
+    cost : (T, M) cost of giving measurement ``j`` to track ``i`` (e.g. ``d2 + log|S|``).
+    gate_mask : (T, M) bool, true where measurement ``j`` is in track ``i``'s gate.
+
+    Returns
+    -------
+    (T,) int: the measurement of each track, -1 for none. Solved with
+    ``scipy.optimize.linear_sum_assignment`` on the cost matrix extended by one "no
+    measurement" column per track, of cost equal to the gate's edge (the largest gated cost + 1).
+    One problem at a time: ``linear_sum_assignment`` has no batch axis, so :func:`gnn_filter`
+    calls this once per run and scan (a Python loop over runs, unlike the single-target
+    functions of this module).
+    """
+    cost = as_float_array(cost, "cost")
+    gate_mask = np.asarray(gate_mask, dtype=bool)
+    if cost.ndim != 2 or gate_mask.shape != cost.shape:
+        raise ValueError(f"cost and gate_mask must both have shape (T, M), got {cost.shape} and {gate_mask.shape}")
+    T, M = cost.shape
+    finite = cost[gate_mask]
+    big = (np.max(np.abs(finite)) + 1.0) * 4.0 if finite.size else 1.0
+    dummy = big / 2.0
+    C = np.full((T, M + T), 10.0 * big)
+    C[:, :M] = np.where(gate_mask, cost, 10.0 * big)
+    C[np.arange(T), M + np.arange(T)] = dummy
+    rows, cols = linear_sum_assignment(C)
+    out = np.full(T, -1, dtype=int)
+    for r_, c_ in zip(rows, cols):
+        if c_ < M and gate_mask[r_, c_]:
+            out[r_] = c_
+    return out
+
+
+def _hypotheses(T: int, M: int) -> np.ndarray:
+    """All joint association events of ``T`` targets and ``M`` measurements: rows of
+    ``a[t] in {0 (missed), 1..M}`` with the non-zero entries distinct."""
+    rows = [a for a in itertools.product(range(M + 1), repeat=T)
+            if len([v for v in a if v]) == len({v for v in a if v})]
+    return np.array(rows, dtype=int).reshape(-1, T)
+
+
+class JPDAUpdate(NamedTuple):
+    """JPDA result for ``T`` targets: ``x`` (..., T, n), ``P`` (..., T, n, n), marginal
+    association probabilities ``beta`` (..., T, M_max + 1) (column 0: missed), the per-target
+    ``gates`` (a :class:`Gate` with batch axes (..., T)) and the number of joint events."""
+
+    x: np.ndarray
+    P: np.ndarray
+    beta: np.ndarray
+    gate: Gate
+    n_events: int
+
+
+def jpda_update(xs, Ps, Z, H, R, *, P_D: float, P_G: float, clutter_density, mask=None) -> JPDAUpdate:
+    r"""Joint probabilistic data association for a few targets, by exact enumeration of the joint
+    events (Fortmann, Bar-Shalom & Scheffe 1983).
+
+    A joint event gives each target one gated measurement or none, no measurement to two
+    targets; its probability is proportional to
+    :math:`\prod_{t\,\text{missed}}(1 - P_D P_G)\prod_{t \to j} P_D N(\nu_{tj}; 0, S_t)/\lambda`.
+    The marginals :math:`\beta_{tj}` then drive a PDAF-form update of each target.
+
+    Parameters
+    ----------
+    xs : (..., T, n) predicted states; ``Ps`` (..., T, n, n).
+    Z : (..., M_max, m) padded scan shared by the targets; ``mask`` (..., M_max).
+    H, R : as in :func:`pdaf_update`; ``clutter_density`` the parametric :math:`\lambda > 0`.
+
+    The number of events grows like :math:`M^T`: use for ``T <= 3`` and modest ``M_max``.
+    """
+    P_D, P_G, lam = _check_prob_detect(P_D), _check_prob_gate(P_G), _check_density(clutter_density)
+    if lam is None or np.any(lam <= 0):
+        raise ValueError(f"clutter_density must be > 0 for JPDA, got {clutter_density!r}")
+    xs = as_vector(xs, "xs")
+    if xs.ndim < 2:
+        raise ValueError(f"xs must have shape (..., T, n), got shape {xs.shape}")
+    x, P, Zc, mask, H, R = _check_filter_args(xs, Ps, Z, mask, H, R)
+    T, M = x.shape[-2], Zc.shape[-2]
+    g, u = _gate(x, P, Zc[..., None, :, :], mask[..., None, :], H, R, P_G)
+    logL0, logL, _, _ = _log_pda_terms(g, P_D, P_G, np.asarray(lam)[..., None])
+    table = np.concatenate([logL0[..., None], logL], axis=-1)  # (..., T, M + 1)
+    ev = _hypotheses(T, M)  # (E, T)
+    logw = np.zeros(table.shape[:-2] + (ev.shape[0],))
+    for t in range(T):
+        logw = logw + table[..., t, :][..., ev[:, t]]
+    w = np.exp(logw - _logsumexp(logw)[..., None])  # (..., E)
+    onehot = (ev[:, :, None] == np.arange(M + 1)).astype(float)  # (E, T, M + 1)
+    beta = np.einsum("...e,etj->...tj", w, onehot)
+    xp, Pp, _ = _pda_combine(x, P, u, g.nu, beta)
+    return JPDAUpdate(xp, Pp, beta, g, int(ev.shape[0]))
+
+
+# --------------------------------------------------------------------------------------------
+# metrics on sets
+# --------------------------------------------------------------------------------------------
+class GOSPA(NamedTuple):
+    """GOSPA distance (alpha = 2) and its parts: ``localisation`` (sum of ``d**p`` over the
+    assigned pairs), ``missed`` and ``false`` counts, so that
+    ``distance**p = localisation + c**p / 2 * (missed + false)``."""
+
+    distance: float
+    localisation: float
+    missed: int
+    false: int
+
+
+def _check_sets(X, Y, c, p):
+    X = np.atleast_2d(as_float_array(X, "truth")) if np.size(X) else np.zeros((0, np.shape(Y)[-1] if np.size(Y) else 1))
+    Y = np.atleast_2d(as_float_array(Y, "estimate")) if np.size(Y) else np.zeros((0, X.shape[-1]))
+    if X.ndim != 2 or Y.ndim != 2 or X.shape[1] != Y.shape[1]:
+        raise ValueError(f"truth and estimate must be sets of points (N, d) and (M, d) of the same width d, "
+                         f"got shapes {X.shape} and {Y.shape}")
+    if not (np.isfinite(c) and c > 0):
+        raise ValueError(f"c (cut-off distance) must be finite and > 0, got {c!r}")
+    if not (np.isfinite(p) and p >= 1):
+        raise ValueError(f"p (order) must be >= 1, got {p!r}")
+    return X, Y
+
+
+def gospa(truth, estimate, *, c: float, p: float = 2.0) -> GOSPA:
+    r"""Generalized OSPA with :math:`\alpha = 2` (Rahmathullah, García-Fernández & Svensson 2017):
+
+    .. math:: d^{(c,2)}_p(X, Y) = \Big(\min_\gamma \sum_{(i,j)\in\gamma} d(x_i, y_j)^p
+       + \tfrac{c^p}{2}(|X| + |Y| - 2|\gamma|)\Big)^{1/p},
+
+    over partial assignments :math:`\gamma` of pairs closer than ``c`` (Euclidean ``d``).
+
+    Parameters
+    ----------
+    truth : (N, d) true points; ``estimate`` (M, d) estimated points (either may be empty).
+    c : cut-off distance; ``p`` the order (>= 1).
+    """
+    X, Y = _check_sets(truth, estimate, c, p)
+    N, M = len(X), len(Y)
+    if N == 0 or M == 0:
+        return GOSPA(float((c**p / 2.0 * (N + M)) ** (1.0 / p)), 0.0, N, M)
+    D = np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=-1)
+    C = np.minimum(D, c) ** p
+    rows, cols = linear_sum_assignment(C)
+    keep = D[rows, cols] < c
+    loc = float(np.sum(D[rows, cols][keep] ** p))
+    n_pairs = int(keep.sum())
+    missed, false = N - n_pairs, M - n_pairs
+    return GOSPA(float((loc + c**p / 2.0 * (missed + false)) ** (1.0 / p)), loc, missed, false)
+
+
+def ospa(truth, estimate, *, c: float, p: float = 2.0) -> float:
+    r"""OSPA distance (Schuhmacher, Vo & Vo 2008), for :math:`n = \max(|X|, |Y|) > 0`:
+    :math:`\big(\frac1n[\min_\pi\sum_i \min(d, c)^p + c^p\,|\,|X|-|Y|\,|]\big)^{1/p}`; 0 for two
+    empty sets. Arguments as in :func:`gospa`."""
+    X, Y = _check_sets(truth, estimate, c, p)
+    N, M = len(X), len(Y)
+    n = max(N, M)
+    if n == 0:
+        return 0.0
+    if min(N, M) == 0:
+        return float(c)
+    C = np.minimum(np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=-1), c) ** p
+    rows, cols = linear_sum_assignment(C)
+    return float(((C[rows, cols].sum() + c**p * abs(N - M)) / n) ** (1.0 / p))
+
+
+# --------------------------------------------------------------------------------------------
+# drivers over a scan sequence
+# --------------------------------------------------------------------------------------------
+class ScanFilterResult(NamedTuple):
+    """A filtered scan sequence, time first: predictions ``x_prior`` (T, ..., n), ``P_prior``
+    (T, ..., n, n) (``x_prior[0] = x0``), estimates ``x``, ``P`` and ``n_gated`` (T, ...), the
+    number of measurements in each gate."""
+
+    x_prior: np.ndarray
+    P_prior: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+    n_gated: np.ndarray
+
+
+_METHODS = ("nn", "snn", "pdaf")
+
+
+def _check_motion(F, Q, n):
+    """The transition ``F`` (n, n) and process-noise covariance ``Q`` (n, n) of one scan interval."""
+    F = as_float_array(F, "F")
+    if F.shape != (n, n):
+        raise ValueError(f"F must have shape ({n}, {n}) (n = {n} from x0), got shape {F.shape}")
+    return F, check_covariance(Q, "Q", n, origin=f"n = {n} from x0")
+
+
+def _predict(x, P, F, Q):
+    """One scan's prediction, ``x`` (..., n), ``P`` (..., n, n); the covariance kept symmetric."""
+    x, P = (F @ x[..., None])[..., 0], F @ P @ F.T + Q
+    return x, 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def _scan_parts(scan):
+    Z, mask = scan[0], scan[1]
+    amp = getattr(scan, "amplitude", None)
+    return Z, mask, amp
+
+
+def filter_scans(method: str, scans, x0, P0, F, Q, H, R, *, P_G: float, P_D: float = 1.0,
+                 clutter_density=None) -> ScanFilterResult:
+    r"""Track one target through a sequence of padded scans with one association method.
+
+    Parameters
+    ----------
+    method : ``"nn"`` (nearest neighbour), ``"snn"`` (strongest neighbour: the scans must carry
+        ``amplitude``, as :class:`kftrack.clutter.Scans` do) or ``"pdaf"``.
+    scans : sequence of T scans, each ``(Z, mask, ...)`` with ``Z`` (..., M_k, m) (e.g. the
+        :class:`kftrack.clutter.Scans` of each scan); ``M_k`` may differ between scans.
+    x0 : (..., n) prediction for the first scan; ``P0`` (..., n, n).
+    F, Q : (n, n) transition and process-noise covariance of one scan interval.
+    H, R : (m, n), (m, m) the measurement.
+    P_G, P_D, clutter_density : as in :func:`pdaf_update` (``P_D`` and ``clutter_density`` used
+        by the PDAF only).
+    """
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+    x, P = as_vector(x0, "x0"), check_covariance(P0, "P0")
+    F, Q = _check_motion(F, Q, x.shape[-1])
+    out = {k: [] for k in ScanFilterResult._fields}
+    for k, scan in enumerate(scans):
+        if k:
+            x, P = _predict(x, P, F, Q)
+        out["x_prior"].append(x)
+        out["P_prior"].append(P)
+        Z, mask, amp = _scan_parts(scan)
+        if method == "nn":
+            u = nearest_neighbour(x, P, Z, H, R, P_G=P_G, mask=mask)
+        elif method == "snn":
+            if amp is None:
+                raise ValueError("method 'snn' needs scans that carry an amplitude (kftrack.clutter.Scans)")
+            u = strongest_neighbour(x, P, Z, H, R, amp, P_G=P_G, mask=mask)
+        else:
+            u = pdaf_update(x, P, Z, H, R, P_D=P_D, P_G=P_G, clutter_density=clutter_density, mask=mask)
+        x, P = u.x, u.P
+        out["x"].append(x)
+        out["P"].append(np.broadcast_to(P, x.shape + x.shape[-1:]))
+        out["n_gated"].append(u.gate.inside.sum(-1))
+    out["P_prior"] = [np.broadcast_to(p, a.shape + a.shape[-1:]) for p, a in zip(out["P_prior"], out["x_prior"])]
+    return ScanFilterResult(*(np.stack(out[k]) for k in ScanFilterResult._fields))
+
+
+def jpda_filter(scans, x0, P0, F, Q, H, R, *, P_G: float, P_D: float, clutter_density):
+    """Track ``T`` targets with :func:`jpda_update` through a scan sequence.
+
+    ``x0`` (..., T, n), ``P0`` (..., T, n, n); other arguments as in :func:`filter_scans`.
+    Returns the estimates ``x`` (K, ..., T, n) and ``P`` (K, ..., T, n, n) for the K scans."""
+    x, P = as_vector(x0, "x0"), check_covariance(P0, "P0")
+    F, Q = _check_motion(F, Q, x.shape[-1])
+    xs, Ps = [], []
+    for k, scan in enumerate(scans):
+        if k:
+            x, P = _predict(x, P, F, Q)
+        u = jpda_update(x, P, scan[0], H, R, P_G=P_G, P_D=P_D, clutter_density=clutter_density, mask=scan[1])
+        x, P = u.x, u.P
+        xs.append(x)
+        Ps.append(P)
+    return np.stack(xs), np.stack(Ps)
+
+
+def gnn_filter(scans, x0, P0, F, Q, H, R, *, P_G: float):
+    r"""Track ``T`` targets with global nearest neighbour through a scan sequence: per scan and
+    run, :func:`gnn_assignment` with cost :math:`d^2 + \log|S|` on the gated pairs, then a Kalman
+    update of each assigned track (the prediction for a track left without a measurement).
+
+    ``x0`` (R_, T, n) for ``R_`` runs (one batch axis), ``P0`` (R_, T, n, n). **The assignment
+    is a Python loop over the runs** (``linear_sum_assignment`` solves one problem at a time, so
+    its cost grows linearly with ``R_``); gating
+    and updates are vectorised over runs. Returns ``x`` (K, R_, T, n), ``P`` (K, R_, T, n, n)."""
+    x, P = as_vector(x0, "x0"), check_covariance(P0, "P0")
+    if x.ndim != 3:
+        raise ValueError(f"x0 must have shape (runs, T, n), got shape {x.shape}")
+    F, Q = _check_motion(F, Q, x.shape[-1])
+    xs, Ps = [], []
+    for k, scan in enumerate(scans):
+        if k:
+            x, P = _predict(x, P, F, Q)
+        Z, mask = check_scan(scan[0], scan[1], H.shape[0])
+        g, u = _gate(x, P, Z[:, None], mask[:, None], H, R, P_G)
+        cost = g.d2 + np.linalg.slogdet(g.S)[1][..., None]
+        idx = np.stack([gnn_assignment(cost[r], g.inside[r]) for r in range(x.shape[0])])
+        upd = _select_update(x, P, g, u, idx)
+        x, P = upd.x, upd.P
+        xs.append(x)
+        Ps.append(P)
+    return np.stack(xs), np.stack(Ps)
