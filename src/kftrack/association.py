@@ -697,10 +697,10 @@ def gnn_filter(scans, x0, P0, F, Q, H, R, *, P_G: float):
     run, :func:`gnn_assignment` with cost :math:`d^2 + \log|S|` on the gated pairs, then a Kalman
     update of each assigned track (the prediction for a track left without a measurement).
 
-    ``x0`` (R_, T, n) for ``R_`` runs (one batch axis), ``P0`` (R_, T, n, n). **The assignment
+    ``x0`` (N, T, n) for N runs (one batch axis), ``P0`` (N, T, n, n). **The assignment
     is a Python loop over the runs** (``linear_sum_assignment`` solves one problem at a time, so
-    its cost grows linearly with ``R_``); gating
-    and updates are vectorised over runs. Returns ``x`` (K, R_, T, n), ``P`` (K, R_, T, n, n)."""
+    its cost grows linearly with N); gating
+    and updates are vectorised over runs. Returns ``x`` (K, N, T, n), ``P`` (K, N, T, n, n)."""
     x, P = as_vector(x0, "x0"), check_covariance(P0, "P0")
     if x.ndim != 3:
         raise ValueError(f"x0 must have shape (runs, T, n), got shape {x.shape}")

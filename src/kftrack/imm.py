@@ -88,12 +88,18 @@ class _PerDt:
 class Mode(Protocol):
     """What the IMM needs of a mode-matched filter (all methods broadcast over batch axes).
 
-    Attributes / methods
-    --------------------
-    n : int, state dimension.
-    predict(x, P, dt) -> (x, P) : time update over ``dt`` seconds.
-    update(x, P, z) -> u : measurement update; ``u.x`` ``(..., n)``, ``u.P`` ``(..., n, n)``,
-        ``u.loglik`` ``(...)`` the log-likelihood :math:`\\log N(\\nu; 0, S)` of the innovation.
+    Attributes
+    ----------
+    n : int
+        State dimension.
+
+    Methods
+    -------
+    predict(x, P, dt)
+        Time update over ``dt`` seconds; returns ``(x, P)``.
+    update(x, P, z)
+        Measurement update; returns ``u`` with ``u.x`` ``(..., n)``, ``u.P`` ``(..., n, n)`` and
+        ``u.loglik`` ``(...)``, the log-likelihood :math:`\\log N(\\nu; 0, S)` of the innovation.
     """
 
     n: int

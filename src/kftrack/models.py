@@ -49,9 +49,9 @@ __all__ = [
     "Turn3D", "turn3d_A", "Turn3DAngles", "turn3d_angles_A", "ANGLES_STATE",
 ]
 
-#: |omega*dt| below which the turn models use their Taylor series (order 20 in omega).
+#: ``|omega*dt|`` below which the turn models use their Taylor series (order 20 in omega).
 TURN_SERIES_THRESHOLD = 0.5
-#: |alpha*dt| below which Singer uses its Taylor series (order 24 in alpha).
+#: ``|alpha*dt|`` below which Singer uses its Taylor series (order 24 in alpha).
 SINGER_SERIES_THRESHOLD = 1.0
 _TURN_SERIES = (sym.omega, sym.omega * sym.T, TURN_SERIES_THRESHOLD, 20)
 _SINGER_SERIES = (sym.alpha, sym.alpha * sym.T, SINGER_SERIES_THRESHOLD, 24)
