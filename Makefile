@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 RUN    := PYTHONHASHSEED=0 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 NBVAL  := --nbval --nbval-current-env --nbval-sanitize-with tests/nbval_sanitize.cfg
 
-.PHONY: help venv book test unit nbval booktest lab execute clean portability
+.PHONY: help venv book test unit nbval booktest lab execute clean portability benchmark
 
 help:
 	@echo "make book     build the site into _build/html from the executed notebooks"
@@ -17,6 +17,7 @@ help:
 	@echo "make execute  re-execute every notebook in place (NB=notebooks/02-*.ipynb for one)"
 	@echo "make portability  unit tests + nbval under several OpenBLAS/NumPy SIMD kernels (UNIT_ONLY=1)"
 	@echo "make clean    remove _build/ and caches (keeps .venv)"
+	@echo "make benchmark  kftrack vs peers (installs benchmarks/requirements.txt; ~5 min; writes book/performance_results.md)"
 
 # (Re)create the virtual environment when it is missing or older than the requirements.
 # The site's JavaScript (require.js, the widget manager) comes pinned from npm: book/_js.
@@ -56,6 +57,11 @@ NB ?= notebooks/*.ipynb
 execute: $(STAMP)
 	$(RUN) $(BIN)/jupyter nbconvert --to notebook --execute --inplace \
 	  --ExecutePreprocessor.timeout=300 --ExecutePreprocessor.kernel_name=python3 $(NB)
+
+# Performance appendix (not part of `make test`): the rivals are pinned in benchmarks/requirements.txt.
+benchmark: $(STAMP)
+	$(BIN)/python -m pip install -q -r benchmarks/requirements.txt
+	$(RUN) $(BIN)/python benchmarks/filters.py
 
 clean:
 	rm -rf _build .pytest_cache .hypothesis

@@ -26,6 +26,7 @@ CHAPTERS = {
     15: ("Localization to SLAM", "15-robot-localization-to-slam", (7,)),
     16: ("Particle filters", "16-particle-filters", (9,)),
     17: ("Tracking in clutter", "17-tracking-in-clutter", (10,)),
+    18: ("Real aircraft", "18-tracking-real-aircraft", (9, 10)),
 }
 
 

@@ -39,7 +39,8 @@ from ._validate import (as_float_array, as_matrix, as_vector, broadcast_batch, c
 from .kalman import FilterResult, Update
 from .kernels import ekf_predict as _k_predict
 from .kernels import ekf_update as _k_update
-from .kernels import matrix_transpose, mv, run_sequence, sym, wrap_angle
+from .engines import Kernel, check_dtype, drive, to_engine, use_jax
+from .kernels import matrix_transpose, mv, sym, wrap_angle
 from .kernels import residual as _k_residual
 
 __all__ = ["wrap_angle", "residual", "measurement_functions", "linearized_transform", "ekf_predict", "ekf_update", "extended_kalman_filter",
@@ -153,7 +154,7 @@ def ekf_update(x, P, z, h: Vector | np.ndarray, H_jac: Vector | None, R, angle_c
 
 def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | np.ndarray, H_jac: Vector | None, R,
                            angle_components: Sequence[int] = (), *, state_angles: Sequence[int] = (),
-                           R_per_step: bool = False, progress: bool = False) -> FilterResult:
+                           R_per_step: bool = False, progress: bool = False, dtype=None) -> FilterResult:
     r"""Filter a whole measurement sequence with the EKF: update with ``zs[k]``, then predict.
 
     Same conventions as :func:`kftrack.kalman.kalman_filter` (``x0`` is the prior of step 0,
@@ -176,12 +177,21 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | 
     R_per_step : if True, ``R`` is time first, ``(T, ..., m, m)``: one covariance per step (and
         per run), as converted measurements need (:meth:`kftrack.sensors.radar.Radar.to_cartesian`).
     progress : show a tqdm progress bar over the time steps (its timings are not reproducible
-        output, so the book's executed notebooks leave it off).
+        output, so the book's executed notebooks leave it off; NumPy engine only).
+    dtype : None or ``"float64"`` (default), or ``"float32"`` (explicit, about nine decimal
+        digits lost); see :func:`kftrack.kalman.kalman_filter`.
+
+    With JAX arrays among ``zs``, ``x0``, ``P0``, ``Q``, ``R`` the JAX engine runs (JAX arrays
+    out); then ``f``, ``F_jac``, ``h``, ``H_jac`` (and a callable ``Q``) must be written with
+    ``jax.numpy``, and the same function objects reuse the compiled loop. Concrete arrays only
+    (their values are checked here).
 
     Returns
     -------
     kftrack.kalman.FilterResult
     """
+    jax_engine = use_jax(zs, x0, P0, Q, R)
+    dt_ = check_dtype(dtype, jax_engine)
     Q_fn = Q if callable(Q) else None
     x0c, _, n0 = check_state(x0, P0, ("x0", "P0"))
     if Q_fn is not None:
@@ -193,36 +203,58 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | 
     angles = check_angles(angle_components, m)
     x_angles = check_angles(state_angles, n, "state_angles")
     xb = np.broadcast_to(x0, batch + (n,))
-    h, H_jac = measurement_functions(h, H_jac, n, m)
+    H_lin = None if callable(h) else measurement_functions(h, H_jac, n, m)[1](None)  # the (m, n) matrix
+    h_, H_jac_ = measurement_functions(h, H_jac, n, m)
     call_checked(f, xb, "f", (n,))
     call_checked(F_jac, xb, "F_jac", (n, n))
-    call_checked(h, xb, "h", (m,))
-    call_checked(H_jac, xb, "H_jac", (m, n))
+    call_checked(h_, xb, "h", (m,))
+    call_checked(H_jac_, xb, "H_jac", (m, n))
     if Q_fn is not None:
         check_covariance(call_checked(Q_fn, xb, "Q", (n, n)), "Q(x0)", n)  # every run's start
-        predict = lambda x, P: _k_predict(x, P, f, F_jac, Q_fn(x), x_angles)  # noqa: E731
+        predict, pred_args = Kernel(_predict_state_q, (("f", f), ("F_jac", F_jac), ("Q_fn", Q_fn),
+                                                       ("x_angles", x_angles))), ()
     else:
-        predict = lambda x, P: _k_predict(x, P, f, F_jac, Q, x_angles)  # noqa: E731
-    if R_seq is None:
-        return run_sequence(zs, x0, P0, batch, row_missing, predict,
-                            lambda x, P, z: _k_update(x, P, z, h, H_jac, R, angles, x_angles), progress)
-    # one covariance per step: carry it through the loop next to the measurement
+        predict, pred_args = Kernel(_predict, (("f", f), ("F_jac", F_jac), ("x_angles", x_angles))), (Q,)
+    meas = (("angles", angles), ("x_angles", x_angles))
+    if H_lin is None:
+        update, upd_args = Kernel(_update, (("h", h_), ("H_jac", H_jac_)) + meas), ()
+    else:  # a linear measurement: H travels as an array (no closure over it)
+        update, upd_args = Kernel(_update_linear, meas), (H_lin,)
+    upd_steps = ()
     T = zs.shape[0]
-    try:
-        R_seq = np.broadcast_to(R_seq, (T,) + batch + (m, m))
-    except ValueError:
-        raise ValueError(f"R must have shape (T, ..., {m}, {m}) matching the batch {batch}, got {R_seq.shape}") from None
-    zb = np.broadcast_to(zs, (T,) + batch + (m,))
-    R_seq = np.where(np.isnan(zb).all(-1)[..., None, None], np.eye(m), R_seq)
-    packed = np.concatenate([zb, R_seq.reshape((T,) + batch + (m * m,))], axis=-1)
+    if R_seq is not None:  # one covariance per step, next to the measurement
+        try:  # batch axes of R align from the right, after the time axis
+            R_seq = R_seq.reshape((T,) + (1,) * max(len(batch) - (R_seq.ndim - 3), 0) + R_seq.shape[1:])
+            R_seq = np.broadcast_to(R_seq, (T,) + batch + (m, m))
+        except ValueError:
+            raise ValueError(f"R must have shape (T, ..., {m}, {m}) matching the batch {batch}, "
+                             f"got {R_seq.shape}") from None
+        gone_b = np.broadcast_to(row_missing, (T,) + batch)
+        R_seq = np.where(gone_b[..., None, None], np.eye(m), R_seq)  # unused there; keeps S invertible
+        upd_steps = (R_seq,)
+    else:
+        upd_args = upd_args + (R,)
+    conv = lambda a: to_engine(a, jax_engine, dt_)  # noqa: E731
+    return drive(jax_engine, conv(zs), conv(row_missing), conv(x0), conv(P0), batch, batch, predict, update,
+                 pred_args=tuple(map(conv, pred_args)), upd_args=tuple(map(conv, upd_args)),
+                 upd_steps=tuple(map(conv, upd_steps)), progress=progress)
 
-    def update(x, P, z):
-        Rk = z[..., m:].reshape(z.shape[:-1] + (m, m))
-        # runs without a measurement arrive zeroed (their result is discarded): keep S invertible
-        Rk = np.where(np.all(Rk == 0.0, axis=(-2, -1))[..., None, None], np.eye(m), Rk)
-        return _k_update(x, P, z[..., :m], h, H_jac, Rk, angles, x_angles)
 
-    return run_sequence(packed, x0, P0, batch, row_missing, predict, update, progress)
+# adapters from the engines' argument order (x, P, arrays..., static options) to the kernels
+def _predict(x, P, Q, *, f, F_jac, x_angles):
+    return _k_predict(x, P, f, F_jac, Q, x_angles)
+
+
+def _predict_state_q(x, P, *, f, F_jac, Q_fn, x_angles):
+    return _k_predict(x, P, f, F_jac, Q_fn(x), x_angles)
+
+
+def _update(x, P, z, R, *, h, H_jac, angles, x_angles):
+    return _k_update(x, P, z, h, H_jac, R, angles, x_angles)
+
+
+def _update_linear(x, P, z, H, R, *, angles, x_angles):
+    return _k_update(x, P, z, lambda s: mv(H, s), lambda s: H, R, angles, x_angles)
 
 
 def _per_step(R, zs) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,11 @@ Carlo runs at once:
 
 Time series put time first: ``(T, ..., n)``.
 
-The unchecked kernels behind these functions live in :mod:`kftrack.kernels`.
+The unchecked kernels behind these functions live in :mod:`kftrack.kernels`; the time loop of
+:func:`kalman_filter` runs on one of the two engines of :mod:`kftrack.engines` (NumPy arrays in:
+the Python loop; JAX arrays in: ``jax.lax.scan`` under ``jax.jit``, JAX arrays out). The
+transition may be constant, a function of irregular sampling intervals ``dt``, or a time-first
+stack (``time_varying=True``).
 
 Equations (Bar-Shalom, Li & Kirubarajan 2001, §5.2):
 
@@ -28,8 +32,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validate import as_matrix, as_vector, broadcast_batch, check_covariance, check_form, check_sequence, check_state
-from .kernels import Update, kf_predict, kf_update, matrix_transpose, mv, run_sequence, sym
+from ._validate import (as_matrix, as_measurement_sequence, as_vector, broadcast_batch, check_covariance, check_form,
+                        check_state)
+from .engines import (Kernel, PerDt, _jax, check_dtype, check_dts, drive, is_tracer, run_smoother_scan, to_engine,
+                      use_jax)
+from .kernels import Update, kf_predict, kf_update, rts_step
 
 __all__ = ["Update", "FilterResult", "SmootherResult", "predict", "update", "kalman_filter", "rts_smoother"]
 
@@ -109,63 +116,213 @@ def update(x, P, z, H, R, *, form: str = "joseph") -> Update:
     return kf_update(x, P, z, H, R, form)
 
 
-def kalman_filter(zs, x0, P0, F, Q, H, R, *, progress: bool = False) -> FilterResult:
-    """Filter a whole measurement sequence: at each step update with ``zs[k]``, then predict.
+def _stand_in(value, kind: str):
+    """A NumPy stand-in of the same shape for an abstract JAX value (inside ``jit``/``grad``), so the
+    boundary checks still check its shape (values cannot be checked there); the value itself
+    otherwise. ``kind``: ``"cov"`` (identity matrices), ``"matrix"``/``"vector"`` (zeros)."""
+    if not is_tracer(value):
+        return value
+    shape = tuple(value.shape)
+    if kind == "cov" and len(shape) >= 2 and shape[-1] == shape[-2]:
+        return np.broadcast_to(np.eye(shape[-1]), shape)
+    return np.zeros(shape)
+
+
+def _transitions(F, Q, n: int, T: int, dt, time_varying: bool, what: str = "x0"):
+    """``F``, ``Q`` in one of the three forms of :func:`kalman_filter`, checked. Returns
+    ``(F, Q, per_step)``: constant ``(..., n, n)`` matrices, or (``per_step`` True) stacks
+    ``(T, ..., n, n)`` with ``F[k]`` mapping step ``k`` to ``k + 1``."""
+    if not isinstance(time_varying, (bool, np.bool_)):
+        raise TypeError(f"time_varying must be True or False, got {time_varying!r}")
+    origin = f"n = {n} from {what}"
+    if dt is not None:
+        if time_varying:
+            raise ValueError("dt and time_varying=True exclude each other: give F, Q as callables of dt "
+                             "(dt=...) or as (T, ..., n, n) stacks (time_varying=True)")
+        for name, fn in (("F", F), ("Q", Q)):
+            if not callable(fn):
+                raise TypeError(f"{name} must be a callable of the interval dt (e.g. model.{name}) when dt is "
+                                f"given, got {type(fn).__name__}")
+        dts = check_dts(dt, T)
+        per_dt = PerDt(lambda d: (F(d), Q(d)))  # each distinct interval evaluated once
+        distinct, where = np.unique(dts, return_inverse=True)
+        mats = []
+        for d in distinct:
+            Fd, Qd = per_dt(d)
+            mats.append((as_matrix(Fd, "F(dt)", n, n, origin=f"{origin}, dt = {d:g}"),
+                         check_covariance(Qd, "Q(dt)", n, origin=f"{origin}, dt = {d:g}")))
+        if distinct.size == 1:  # one interval: the constant form, to the last bit
+            return mats[0][0], mats[0][1], False
+        shp = broadcast_batch({"F(dt)": np.broadcast_shapes(*(a.shape[:-2] for a, _ in mats)),
+                               "Q(dt)": np.broadcast_shapes(*(b.shape[:-2] for _, b in mats))})
+        Fs = np.stack([np.broadcast_to(a, shp + (n, n)) for a, _ in mats])[where]
+        Qs = np.stack([np.broadcast_to(b, shp + (n, n)) for _, b in mats])[where]
+        return Fs, Qs, True
+    for name, fn in (("F", F), ("Q", Q)):
+        if callable(fn) and not hasattr(fn, "shape"):
+            raise TypeError(f"{name} is a callable ({type(fn).__name__}); pass the sampling intervals dt=... "
+                            f"to evaluate it, or pass {name} as an array")
+    Qh = check_covariance(_stand_in(Q, "cov"), "Q", n, origin=origin)
+    Fh = as_matrix(_stand_in(F, "matrix"), "F", n, n, origin=origin)
+    if not time_varying:
+        return Fh, Qh, False
+    for name, a in (("F", Fh), ("Q", Qh)):
+        if a.ndim < 3 or a.shape[0] != T:
+            raise ValueError(f"{name} must have shape (T, ..., {n}, {n}) with T = {T} steps (time first) when "
+                             f"time_varying=True, got shape {a.shape}")
+    return Fh, Qh, True
+
+
+def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, time_varying: bool = False, progress: bool = False,
+                  dtype=None) -> FilterResult:
+    r"""Filter a whole measurement sequence: at each step update with ``zs[k]``, then predict.
 
     A measurement row that is all NaN means "no measurement at this step": the filter only
-    predicts across it. Validation happens once here; the loop runs unchecked kernels.
+    predicts across it. Validation happens once here; the loop runs unchecked kernels
+    (:mod:`kftrack.kernels`) with one of the two drivers of :mod:`kftrack.engines`.
+
+    The transition comes in one of three forms:
+
+    * constant: ``F``, ``Q`` arrays ``(n, n)`` or ``(..., n, n)``, the same at every step;
+    * irregular sampling: ``dt`` given, ``F`` and ``Q`` callables of the interval (``model.F``,
+      ``model.Q`` of :mod:`kftrack.models`), evaluated once per distinct interval; step ``k``
+      predicts with :math:`F(dt_k)`, :math:`Q(dt_k)`;
+    * ``time_varying=True``: ``F``, ``Q`` stacks ``(T, ..., n, n)``, ``F[k]`` mapping step ``k`` to
+      step ``k + 1``.
+
+    .. math::
+
+        x^-_{k+1} = F_k x_k,\quad P^-_{k+1} = F_k P_k F_k^\top + Q_k
+
+    (the last ``F[T-1]``, ``dt[T-1]`` is not used: no step follows).
 
     Parameters
     ----------
     zs : (T, ..., m) measurements, time first; rows of NaN mark missing measurements.
     x0 : (..., n) prior mean for step 0 (before ``zs[0]``).
     P0 : (..., n, n) prior covariance for step 0.
-    F, Q, H, R : as in :func:`predict` and :func:`update`, constant over time.
-    progress : show a progress bar (tqdm) over the time steps.
+    F, Q : the transition matrix and process-noise covariance in one of the forms above.
+    H, R : (m, n) or (..., m, n) measurement matrix, (m, m) or (..., m, m) measurement noise
+        (positive definite), constant over time.
+    dt : None, or the intervals (s) after each step, a scalar or ``(T,)`` (``dt[k]`` from step
+        ``k`` to ``k + 1``, as in :func:`kftrack.imm.imm_filter`); then ``F``, ``Q`` are callables.
+    time_varying : if True, ``F`` and ``Q`` carry a leading time axis ``T``.
+    progress : show a progress bar (tqdm) over the time steps (NumPy engine only).
+    dtype : None or ``"float64"`` (default), or ``"float32"``, an explicit choice that loses
+        about nine decimal digits (round-off :math:`2^{-24}` relative per operation instead of
+        :math:`2^{-53}`). With JAX arrays float64 needs ``jax_enable_x64``.
 
     Returns
     -------
     FilterResult
         priors and posteriors ``(T, ..., n)``, ``(T, ..., n, n)``; ``nis``, ``loglik`` ``(T, ...)``.
+        JAX arrays if any input is a JAX array (the JAX engine, :func:`kftrack.engines.run_scan`),
+        NumPy arrays otherwise. When no covariance input has batch axes and all runs miss the
+        same rows, the covariance recursion is computed once for all runs (it does not depend on
+        the data); the NumPy engine then returns ``P``, ``P_prior`` as read-only broadcast views.
+
+    Raises
+    ------
+    ValueError, TypeError
+        On bad input, naming the argument.
     """
-    zs, x0, P0, Q, R, n, m, batch, row_missing = check_sequence(zs, x0, P0, Q, R)
-    F = as_matrix(F, "F", n, n, origin=f"n = {n} from x0")
-    H = as_matrix(H, "H", m, n, origin=f"m = {m} from zs, n = {n} from x0")
-    batch = broadcast_batch({"zs, x0, P0, Q, R": batch, "F": F.shape[:-2], "H": H.shape[:-2]})
-    return run_sequence(zs, x0, P0, batch, row_missing,
-                        lambda x, P: kf_predict(x, P, F, Q),
-                        lambda x, P, z: kf_update(x, P, z, H, R), progress)
+    jax_engine = use_jax(zs, x0, P0, F, Q, H, R)
+    dt_ = check_dtype(dtype, jax_engine)
+    zs_h, gone = as_measurement_sequence(_stand_in(zs, "vector"), "zs")
+    T, m = zs_h.shape[0], zs_h.shape[-1]
+    x0_h, P0_h, n = check_state(_stand_in(x0, "vector"), _stand_in(P0, "cov"), ("x0", "P0"))
+    R_h = check_covariance(_stand_in(R, "cov"), "R", m, positive_definite=True, origin=f"m = {m} from zs")
+    F_h, Q_h, per_step = _transitions(F, Q, n, T, dt, time_varying)
+    H_h = as_matrix(_stand_in(H, "matrix"), "H", m, n, origin=f"m = {m} from zs, n = {n} from x0")
+    tb = 1 if per_step else 0  # leading time axis of F, Q
+    batch = broadcast_batch({"zs[k]": zs_h.shape[1:-1], "x0": x0_h.shape[:-1], "P0": P0_h.shape[:-2],
+                             "F": F_h.shape[tb:-2], "Q": Q_h.shape[tb:-2], "H": H_h.shape[:-2], "R": R_h.shape[:-2]})
+    if is_tracer(zs):  # missing rows known only inside the trace
+        gone = _jax().numpy.isnan(zs).all(-1)
+    elif gone.ndim > 1:
+        flat = gone.reshape(T, -1)
+        if (flat == flat[:, :1]).all():  # one pattern for every run: keep the covariances shared
+            gone = flat[:, 0]
+    cov_batch = np.broadcast_shapes(P0_h.shape[:-2], F_h.shape[tb:-2], Q_h.shape[tb:-2], H_h.shape[:-2],
+                                    R_h.shape[:-2], tuple(gone.shape[1:]))
+    # the engine gets the caller's values (JAX arrays or tracers stay such); checked ones otherwise
+    pick = (lambda a, h: a if use_jax(a) else h) if jax_engine else (lambda a, h: h)
+    args = [to_engine(pick(a, h), jax_engine, dt_) for a, h in
+            ((zs, zs_h), (x0, x0_h), (P0, P0_h), (F, F_h), (Q, Q_h), (H, H_h), (R, R_h))]
+    zs_e, x0_e, P0_e, F_e, Q_e, H_e, R_e = args
+    gone_e = to_engine(gone, jax_engine, dt_)
+    pred = dict(pred_steps=(F_e, Q_e)) if per_step else dict(pred_args=(F_e, Q_e))
+    return drive(jax_engine, zs_e, gone_e, x0_e, P0_e, batch, cov_batch, _KF_PREDICT, _KF_UPDATE,
+                 upd_args=(H_e, R_e), progress=progress, **pred)
 
 
-def rts_smoother(result: FilterResult, F) -> SmootherResult:
+_KF_PREDICT = Kernel(kf_predict)
+_KF_UPDATE = Kernel(kf_update)
+
+
+def _compact(a, nb: int):
+    """A NumPy broadcast view ``(T, *batch, ...)`` with zero strides on the ``nb`` batch axes,
+    reduced to ``(T, ...)`` (the shared covariances of :func:`kalman_filter`); ``None`` otherwise."""
+    if isinstance(a, np.ndarray) and nb and all(st == 0 for st in a.strides[1:1 + nb]):
+        return a[(slice(None),) + (0,) * nb]
+    return None
+
+
+def rts_smoother(result: FilterResult, F, *, dt=None, time_varying: bool = False) -> SmootherResult:
     r"""Rauch–Tung–Striebel smoother over a :class:`FilterResult` (Särkkä 2013, Thm 8.2).
 
     .. math::
 
-        G_k = P_k F^\top (P^-_{k+1})^{-1}, \quad
+        G_k = P_k F_k^\top (P^-_{k+1})^{-1}, \quad
         x^s_k = x_k + G_k (x^s_{k+1} - x^-_{k+1}), \quad
         P^s_k = P_k + G_k (P^s_{k+1} - P^-_{k+1}) G_k^\top
 
     Parameters
     ----------
-    result : the output of :func:`kalman_filter` (the same ``F`` must be passed).
-    F : (n, n) or (..., n, n) transition matrix used by the filter.
+    result : the output of :func:`kalman_filter`; JAX arrays run the smoother's JAX engine
+        (:func:`kftrack.engines.run_smoother_scan`) and return JAX arrays.
+    F : the transition used by the filter, in the same form: an ``(n, n)`` or ``(..., n, n)``
+        matrix; a callable of ``dt`` (with ``dt``); or a ``(T, ..., n, n)`` stack
+        (``time_varying=True``).
+    dt : the filter's intervals, scalar or ``(T,)``, when ``F`` is a callable.
+    time_varying : if True, ``F`` carries a leading time axis ``T`` (``F[k]``: step ``k`` to ``k + 1``).
+
+    Returns
+    -------
+    SmootherResult
+        ``x`` ``(T, ..., n)``, ``P`` ``(T, ..., n, n)``, gains ``G`` ``(T-1, ..., n, n)``.
     """
     if not isinstance(result, FilterResult):
         raise TypeError(f"result must be a FilterResult from kalman_filter, got {type(result).__name__}")
+    jax_engine = use_jax(*result)
     n = result.x.shape[-1]
-    F = as_matrix(F, "F", n, n, origin=f"n = {n} from the filter's states")
-    batch = result.x.shape[1:-1]
-    if broadcast_batch({"result": batch, "F": F.shape[:-2]}) != batch:
-        raise ValueError(f"F must have shape ({n}, {n}) or the filter's batch axes {batch} + ({n}, {n}), "
-                         f"got shape {F.shape}")
     T = result.x.shape[0]
-    xs, Ps = result.x.copy(), result.P.copy()
-    G = np.empty((max(T - 1, 0),) + result.P.shape[1:])
+    batch = result.x.shape[1:-1]
+    eye = np.eye(n)
+    F_h, _, per_step = _transitions(F, (lambda d: eye) if dt is not None else (eye if not time_varying else
+                                    np.broadcast_to(eye, (T, n, n))), n, T, dt, time_varying, "the filter's states")
+    tb = 1 if per_step else 0
+    if broadcast_batch({"result": batch, "F": F_h.shape[tb:-2]}) != batch:
+        raise ValueError(f"F must have shape ({n}, {n}) or the filter's batch axes {batch} + ({n}, {n}), "
+                         f"got shape {F_h.shape}")
+    if jax_engine:  # the same step, rts_step, under a reversed jax.lax.scan
+        if T < 2:
+            return SmootherResult(result.x, result.P, result.P[:0])
+        dt_ = result.x.dtype
+        F_e = F if use_jax(F) else to_engine(F_h, True, dt_)
+        return SmootherResult(*run_smoother_scan(result.x, result.P, result.x_prior, result.P_prior, F_e, per_step))
+    P, P_prior = _compact(result.P, len(batch)), _compact(result.P_prior, len(batch))
+    shared = P is not None and P_prior is not None and F_h.shape[tb:-2] == ()
+    if not shared:
+        P, P_prior = result.P, result.P_prior
+    xs = result.x.copy()
+    Ps = P.copy()
+    G = np.empty((max(T - 1, 0),) + P.shape[1:])
     for k in range(T - 2, -1, -1):
-        # G_k = P_k F^T (P^-_{k+1})^{-1}, solved as (P^-_{k+1})^T G_k^T = F P_k
-        Gk = matrix_transpose(np.linalg.solve(result.P_prior[k + 1], F @ result.P[k]))
-        xs[k] = result.x[k] + mv(Gk, xs[k + 1] - result.x_prior[k + 1])
-        Ps[k] = sym(result.P[k] + Gk @ (Ps[k + 1] - result.P_prior[k + 1]) @ matrix_transpose(Gk))
-        G[k] = Gk
+        Fk = F_h[k] if per_step else F_h
+        xs[k], Ps[k], G[k] = rts_step(result.x[k], P[k], result.x_prior[k + 1], P_prior[k + 1], xs[k + 1],
+                                      Ps[k + 1], Fk)
+    if shared:
+        Ps = np.broadcast_to(Ps.reshape((T,) + (1,) * len(batch) + (n, n)), (T,) + batch + (n, n))
+        G = np.broadcast_to(G.reshape((G.shape[0],) + (1,) * len(batch) + (n, n)), (G.shape[0],) + batch + (n, n))
     return SmootherResult(xs, Ps, G)

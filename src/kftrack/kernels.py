@@ -1,22 +1,23 @@
-r"""The unchecked predict/update kernels: one home for the filter equations.
+r"""The unchecked predict/update/mixing kernels: one home for the filter equations.
 
 **No validation happens here.** The public functions (:func:`kftrack.kalman.predict`,
 :func:`kftrack.kalman.update`, :func:`kftrack.ekf.ekf_update`, :func:`kftrack.ukf.ukf_update`,
 :class:`kftrack.imm.IMM`, ...) validate their arguments once at the boundary, then call these
-kernels, and their time loops call the kernels at every step. Call a kernel directly only with
-arguments you have already checked (shapes as in :mod:`kftrack.kalman`: ``x`` ``(..., n)``,
-``P`` ``(..., n, n)``, batch axes broadcasting): a wrong shape gives a NumPy error or a wrong
-answer, not a message.
+kernels, and their time loops (:mod:`kftrack.engines`) call the kernels at every step. Call a
+kernel directly only with arguments you have already checked (shapes as in
+:mod:`kftrack.kalman`: ``x`` ``(..., n)``, ``P`` ``(..., n, n)``, batch axes broadcasting): a
+wrong shape gives an array-library error or a wrong answer, not a message.
 
-The kernels use matrix products (``@``), :func:`matrix_transpose`, ``linalg.solve``,
-``linalg.slogdet``, ``linalg.cholesky`` and elementwise arithmetic, all in the array API
-standard, so that they can later run on another array namespace (JAX under ``jit``). A few
-NumPy-only spellings remain where replacing them could change the last bit of a result that the
-book's stored outputs depend on: ``einsum`` for weighted sums (``vecdot``/``tensordot``
-would be the array-API spelling) and in-place assignment of the angle components.
+**One set of equations, two engines.** Every kernel takes its array namespace from its
+arguments, ``xp = array_api_compat.array_namespace(...)``, and uses only operations of the
+array API standard (``@``, ``matrix_transpose``, ``linalg.solve``, ``linalg.slogdet``,
+``linalg.cholesky``, ``where``, ``concat``, elementwise functions): the same code runs on NumPy
+arrays (the NumPy engine) and on JAX arrays and tracers under ``jax.jit`` (the JAX engine).
+Branches depend only on shapes and static options, never on values, so every kernel traces.
+All arguments of one call must come from the same library.
 
 Equations (Bar-Shalom, Li & Kirubarajan 2001, §5.2, §10.3; Wan & van der Merwe 2000;
-Blom & Bar-Shalom 1988):
+Blom & Bar-Shalom 1988; Särkkä 2013, Thm 8.2):
 
 .. math::
 
@@ -27,18 +28,44 @@ Blom & Bar-Shalom 1988):
 """
 from __future__ import annotations
 
+import math
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
+from array_api_compat import array_namespace as _array_namespace
+from array_api_compat import is_numpy_namespace
+
+# NumPy >= 2 implements the array API itself: use it directly (array_api_compat's wrappers of
+# NumPy add a Python call to every operation); older NumPy goes through the wrappers.
+_NUMPY = np if np.lib.NumpyVersion(np.__version__) >= "2.0.0" else _array_namespace(np.zeros(1))
+
+
+def array_namespace(*arrays):
+    """The array namespace of the arguments (``array_api_compat.array_namespace``), with a fast
+    path for the common case of NumPy arrays only (the NumPy engine calls it at every step):
+    then the ``numpy`` module itself (NumPy >= 2)."""
+    for a in arrays:
+        if type(a) is not np.ndarray:
+            return _array_namespace(*arrays)
+    return _NUMPY
+
+
+def _is_np(*arrays) -> bool:
+    """True if every argument is a NumPy array (the NumPy engine), checked by exact type: fast."""
+    for a in arrays:
+        if type(a) is not np.ndarray:
+            return False
+    return True
 
 __all__ = [
-    "Update", "SigmaPoints", "mv", "matrix_transpose", "sym", "wrap_angle", "residual", "wrap_state",
+    "Update", "SigmaPoints", "mm", "mv", "matrix_transpose", "sym", "wrap_angle", "residual", "wrap_state",
     "kf_predict", "kf_update", "innovation_score", "gain_update", "ekf_predict", "ekf_update",
     "sigma_points", "weighted_mean", "moments", "unscented", "ukf_predict", "ukf_update",
-    "logsumexp", "moment_match", "mixing_log_weights", "run_sequence",
+    "logsumexp", "moment_match", "mixing_log_weights", "rts_step", "solve_spd", "logdet_spd",
 ]
 
-_LOG_2PI = np.log(2.0 * np.pi)
+_LOG_2PI = math.log(2.0 * math.pi)
 
 
 class Update(NamedTuple):
@@ -76,14 +103,43 @@ class SigmaPoints(NamedTuple):
 # --------------------------------------------------------------------------------------------
 # small linear-algebra helpers
 # --------------------------------------------------------------------------------------------
+def mm(A, B):
+    r"""Matrix product over batch axes, ``(..., r, c) @ (..., c, k) -> (..., r, k)``.
+
+    On NumPy exactly ``A @ B``. On other namespaces (JAX, compiled), for ``r, k <= 8``, the sum
+    of ``c`` outer products :math:`C = \sum_p A_{:,p} B_{p,:}` as broadcast elementwise
+    products: a compiler fuses them into one loop over the batch, where a batched product of
+    tiny matrices is many times slower (measured with XLA on CPU: 30 x for 4 x 4)."""
+    if _is_np(A, B):
+        return A @ B
+    r, c, k = A.shape[-2], A.shape[-1], B.shape[-1]
+    if is_numpy_namespace(array_namespace(A, B)) or max(r, k) > _UNROLL or c > 4 * _UNROLL:
+        return A @ B
+    C = A[..., :, 0, None] * B[..., None, 0, :]
+    for p in range(1, c):
+        C = C + A[..., :, p, None] * B[..., None, p, :]
+    return C
+
+
 def mv(A, v):
-    """Matrix times vector over batch axes: ``(..., r, c) @ (..., c) -> (..., r)``."""
-    return (A @ v[..., None])[..., 0]
+    """Matrix times vector over batch axes: ``(..., r, c) @ (..., c) -> (..., r)``.
+
+    On NumPy always the broadcast product ``(A @ v[..., None])[..., 0]``, so a shared matrix and
+    the same matrix repeated per batch member give the same bits (the book's "EKF on a linear
+    model is the Kalman filter, bit for bit"). On other namespaces (JAX, compiled) a shared
+    ``(r, c)`` matrix is applied to the whole batch as one product ``v @ A^T``."""
+    if _is_np(A, v):
+        return (A @ v[..., None])[..., 0]
+    if A.ndim == 2 and not is_numpy_namespace(array_namespace(A, v)):
+        return v @ matrix_transpose(A)
+    return mm(A, v[..., None])[..., 0]
 
 
 def matrix_transpose(A):
     """Swap the last two axes (``array_api.matrix_transpose``)."""
-    return np.swapaxes(A, -1, -2)
+    if type(A) is np.ndarray:
+        return A.swapaxes(-1, -2)
+    return array_namespace(A).matrix_transpose(A)
 
 
 def sym(A):
@@ -91,34 +147,119 @@ def sym(A):
     return 0.5 * (A + matrix_transpose(A))
 
 
-_T = matrix_transpose
+_UNROLL = 8  # largest matrix that a compiled engine factors with unrolled elementwise code
 
 
-def wrap_angle(a) -> np.ndarray:
+def _cholesky_entries(xp, A):
+    """Lower Cholesky factor of ``A`` (..., m, m) as a nested list of ``(...)`` arrays, unrolled."""
+    m = A.shape[-1]
+    L = [[None] * m for _ in range(m)]
+    for j in range(m):
+        d = A[..., j, j]
+        for p in range(j):
+            d = d - L[j][p] * L[j][p]
+        L[j][j] = xp.sqrt(d)
+        for i in range(j + 1, m):
+            e = A[..., i, j]
+            for p in range(j):
+                e = e - L[i][p] * L[j][p]
+            L[i][j] = e / L[j][j]
+    return L
+
+
+def _spd_factor(xp, A):
+    """The unrolled lower Cholesky factor of ``A`` (nested list, ``_cholesky_entries``) on a
+    compiled namespace (JAX) for ``m <= 8``; ``None`` on NumPy or for larger ``A`` (then LAPACK:
+    on NumPy one LAPACK call per solve costs less than the unrolled entry-by-entry operations,
+    measured for a single track with ``m = 2``)."""
+    if is_numpy_namespace(xp) or A.shape[-1] > _UNROLL:
+        return None
+    return _cholesky_entries(xp, A)
+
+
+def _spd_solve(xp, A, L, B):
+    """``A^{-1} B`` with the factor ``L`` of ``_spd_factor`` (``linalg.solve`` if ``L`` is None)."""
+    if L is None:
+        return xp.linalg.solve(A, B)
+    m = A.shape[-1]
+    Y = []
+    for i in range(m):  # L Y = B
+        e = B[..., i, :]
+        for p in range(i):
+            e = e - L[i][p][..., None] * Y[p]
+        Y.append(e / L[i][i][..., None])
+    X = [None] * m
+    for i in range(m - 1, -1, -1):  # L^T X = Y
+        e = Y[i]
+        for p in range(i + 1, m):
+            e = e - L[p][i][..., None] * X[p]
+        X[i] = e / L[i][i][..., None]
+    return xp.stack(X, axis=-2)
+
+
+def _spd_logdet(xp, A, L):
+    """``log det A`` with the factor ``L`` of ``_spd_factor`` (``linalg.slogdet`` if ``L`` is None)."""
+    if L is None:
+        return xp.linalg.slogdet(A)[1]
+    out = xp.log(L[0][0])
+    for i in range(1, len(L)):
+        out = out + xp.log(L[i][i])
+    return 2.0 * out
+
+
+def solve_spd(A, B):
+    r"""``A^{-1} B`` for symmetric positive definite ``A`` (..., m, m) and ``B`` (..., m, k).
+
+    NumPy: ``linalg.solve`` (LU with pivoting, LAPACK), as the chapters have always computed it.
+    Other namespaces (JAX, compiled), for ``m <= 8``: the Cholesky factorization
+    :math:`A = LL^\top` and two triangular solves written out entry by entry, which a compiler
+    fuses over the batch (a batched LAPACK call per small matrix is slow there). Both are
+    backward stable for SPD ``A``: they agree to :math:`O(m\,\kappa(A)\,\varepsilon)`."""
+    xp = array_namespace(A, B)
+    return _spd_solve(xp, A, _spd_factor(xp, A), B)
+
+
+def logdet_spd(A):
+    r"""``log det A`` of symmetric positive definite ``A`` (..., m, m): ``linalg.slogdet`` on NumPy,
+    :math:`2\sum_i \log L_{ii}` of the unrolled Cholesky factor elsewhere (``m <= 8``)."""
+    xp = array_namespace(A)
+    return _spd_logdet(xp, A, _spd_factor(xp, A))
+
+
+def wrap_angle(a):
     r"""Wrap angles (rad) to :math:`(-\pi, \pi]`: :math:`\pi - ((\pi - a) \bmod 2\pi)`.
 
-    ``wrap_angle(pi) == pi`` and ``wrap_angle(-pi) == pi``; any shape.
+    ``wrap_angle(pi) == pi`` and ``wrap_angle(-pi) == pi``; any shape. A Python number or list
+    becomes a float64 NumPy array.
     """
-    a = np.asarray(a, dtype=float)
-    return np.pi - np.mod(np.pi - a, 2.0 * np.pi)
+    if not hasattr(a, "__array_namespace__"):
+        a = np.asarray(a, dtype=float)
+    xp = array_namespace(a)
+    if not xp.isdtype(a.dtype, "real floating"):
+        a = xp.astype(a, xp.float64)
+    return xp.pi - xp.remainder(xp.pi - a, 2.0 * xp.pi)
+
+
+def _angle_mask(xp, d: int, angles: tuple[int, ...]):
+    """Boolean ``(d,)`` vector, True at the (static) component indices ``angles``."""
+    return xp.asarray([i in angles for i in range(d)])
 
 
 def residual(a, b, angles: tuple[int, ...]):
     """``a - b`` with the components ``angles`` (already validated indices) wrapped to (-pi, pi]."""
     d = a - b
-    if angles:
-        d = d.copy()
-        d[..., angles] = wrap_angle(d[..., angles])
-    return d
+    if not angles:
+        return d
+    xp = array_namespace(d)
+    return xp.where(_angle_mask(xp, d.shape[-1], angles), wrap_angle(d), d)
 
 
 def wrap_state(x, x_angles):
-    """Wrap the state components ``x_angles`` to (-pi, pi] (a copy; ``x`` itself when there are none)."""
+    """Wrap the state components ``x_angles`` to (-pi, pi] (``x`` itself when there are none)."""
     if not x_angles:
         return x
-    x = np.array(x, dtype=float)
-    x[..., x_angles] = wrap_angle(x[..., x_angles])
-    return x
+    xp = array_namespace(x)
+    return xp.where(_angle_mask(xp, x.shape[-1], x_angles), wrap_angle(x), x)
 
 
 # --------------------------------------------------------------------------------------------
@@ -126,31 +267,59 @@ def wrap_state(x, x_angles):
 # --------------------------------------------------------------------------------------------
 def kf_predict(x, P, F, Q):
     r"""Time update :math:`x^- = F x`, :math:`P^- = \operatorname{sym}(F P F^\top + Q)`."""
-    return mv(F, x), sym(F @ P @ _T(F) + Q)
+    return mv(F, x), sym(mm(mm(F, P), matrix_transpose(F)) + Q)
 
 
-def innovation_score(y, S) -> tuple[np.ndarray, np.ndarray]:
+def innovation_score(y, S):
     r"""NIS :math:`y^\top S^{-1} y` and Gaussian log-likelihood :math:`\log N(y; 0, S)` of an innovation."""
-    Sinv_y = np.linalg.solve(S, y[..., None])[..., 0]
-    nis = np.einsum("...i,...i->...", y, Sinv_y)
-    _, logdet = np.linalg.slogdet(S)
-    return nis, -0.5 * (nis + logdet + y.shape[-1] * _LOG_2PI)
+    xp = array_namespace(y, S)
+    return _score(xp, y, S, _spd_factor(xp, S))
+
+
+def _score(xp, y, S, L):
+    """:func:`innovation_score` with the factor ``L`` of ``S`` (``_spd_factor``) already computed."""
+    Sinv_y = _spd_solve(xp, S, L, y[..., None])[..., 0]
+    nis = xp.sum(y * Sinv_y, axis=-1)
+    return nis, -0.5 * (nis + _spd_logdet(xp, S, L) + y.shape[-1] * _LOG_2PI)
+
+
+@lru_cache(maxsize=16)
+def _np_eye(n: int, dtype):
+    """A read-only NumPy identity ``(n, n)``, made once per size and dtype."""
+    eye = np.eye(n, dtype=dtype)
+    eye.flags.writeable = False
+    return eye
 
 
 def kf_update(x, P, z, H, R, form: str = "joseph") -> Update:
     """Measurement update with the Joseph form (``form="joseph"``, symmetrized) or the short form
     :math:`(I - KH)P` as computed (``form="standard"``, not symmetrized)."""
+    xp = array_namespace(x, P, z, H, R)
+    _T = matrix_transpose
     y = z - mv(H, x)
-    PHt = P @ _T(H)
-    S = sym(H @ PHt + R)
-    K = _T(np.linalg.solve(S, _T(PHt)))  # S symmetric: K^T = S^{-1} H P
+    PHt = mm(P, _T(H))
+    S = sym(mm(H, PHt) + R)
+    L = _spd_factor(xp, S)  # one factorization of S for the gain, the NIS and the log-likelihood
+    K = _T(_spd_solve(xp, S, L, _T(PHt)))  # S symmetric: K^T = S^{-1} H P
     x_post = x + mv(K, y)
-    I_KH = np.eye(x.shape[-1]) - K @ H
+    eye = _np_eye(x.shape[-1], x.dtype) if xp is np else xp.eye(x.shape[-1], dtype=x.dtype)
+    I_KH = eye - mm(K, H)
     if form == "joseph":
-        P_post = sym(I_KH @ P @ _T(I_KH) + K @ R @ _T(K))
+        P_post = sym(mm(mm(I_KH, P), _T(I_KH)) + mm(mm(K, R), _T(K)))
     else:  # "standard": the short form (I - KH) P, as computed (not symmetrized)
-        P_post = I_KH @ P
-    return Update(x_post, P_post, y, S, K, *innovation_score(y, S))
+        P_post = mm(I_KH, P)
+    return Update(x_post, P_post, y, S, K, *_score(xp, y, S, L))
+
+
+def rts_step(x, P, x_prior_next, P_prior_next, xs_next, Ps_next, F):
+    r"""One Rauch–Tung–Striebel step back in time: :math:`G = P F^\top (P^-_{k+1})^{-1}`,
+    :math:`x^s = x + G(x^s_{k+1} - x^-_{k+1})`, :math:`P^s = \operatorname{sym}(P + G(P^s_{k+1} - P^-_{k+1})G^\top)`.
+    Returns ``(x^s, P^s, G)``."""
+    xp = array_namespace(x, P, F)
+    G = matrix_transpose(solve_spd(P_prior_next, mm(F, P)))  # (P^-)^T G^T = F P
+    xs = x + mv(G, xs_next - x_prior_next)
+    Ps = sym(P + mm(mm(G, Ps_next - P_prior_next), matrix_transpose(G)))
+    return xs, Ps, G
 
 
 # --------------------------------------------------------------------------------------------
@@ -160,7 +329,8 @@ def gain_update(x, P, y, H, R) -> Update:
     """Update with a given innovation ``y``. Runs :func:`kf_update` linearized at zero (where its
     innovation is ``y`` exactly) and shifts the mean back by ``x``; every number is then the one
     the Kalman filter computes, to the last bit."""
-    u = kf_update(np.zeros_like(x), P, y, H, R)
+    xp = array_namespace(x, P, y, H, R)
+    u = kf_update(xp.zeros_like(x), P, y, H, R)
     return u._replace(x=x + u.x)
 
 
@@ -183,40 +353,50 @@ def ekf_update(x, P, z, h, H_jac, R, angles, x_angles=()) -> Update:
 # --------------------------------------------------------------------------------------------
 def sigma_points(x, P, c, Wm, Wc) -> SigmaPoints:
     r"""Points :math:`x`, :math:`x \pm [\sqrt{cP}]_i` (columns of the lower Cholesky factor)."""
-    L = np.linalg.cholesky(c * P)  # lower: columns are the offsets
-    offsets = _T(L)  # (..., n, n), row i = column i of L
-    zero = np.zeros(offsets.shape[:-2] + (1, x.shape[-1]))
-    X = x[..., None, :] + np.concatenate([zero, offsets, -offsets], axis=-2)
+    xp = array_namespace(x, P)
+    L = xp.linalg.cholesky(c * P)  # lower: columns are the offsets
+    offsets = matrix_transpose(L)  # (..., n, n), row i = column i of L
+    zero = xp.zeros(offsets.shape[:-2] + (1, x.shape[-1]), dtype=x.dtype)
+    X = x[..., None, :] + xp.concat([zero, offsets, -offsets], axis=-2)
     return SigmaPoints(X, Wm, Wc)
+
+
+def _wsum(W, Y):
+    """``sum_i W_i Y[..., i, :]`` for weights ``W`` ``(N,)`` and points ``Y`` ``(..., N, d)``."""
+    xp = array_namespace(Y)
+    return xp.sum(xp.asarray(W, dtype=Y.dtype)[:, None] * Y, axis=-2)
 
 
 def weighted_mean(Y, Wm, angles: tuple[int, ...]):
     """Weighted mean of points ``Y`` ``(..., 2n+1, d)``; circular mean on the ``angles`` components."""
-    y = np.einsum("i,...id->...d", Wm, Y)
-    if angles:
-        a = Y[..., angles]
-        y[..., angles] = np.arctan2(np.einsum("i,...id->...d", Wm, np.sin(a)),
-                                    np.einsum("i,...id->...d", Wm, np.cos(a)))
-    return y
+    y = _wsum(Wm, Y)
+    if not angles:
+        return y
+    xp = array_namespace(Y)
+    circ = xp.atan2(_wsum(Wm, xp.sin(Y)), _wsum(Wm, xp.cos(Y)))
+    return xp.where(_angle_mask(xp, Y.shape[-1], angles), circ, y)
 
 
 def moments(Y, Wm, Wc, angles):
     """``(mean, cov, deviations)`` of weighted points ``Y`` (wrapped deviations on ``angles``)."""
+    xp = array_namespace(Y)
     y = weighted_mean(Y, Wm, angles)
     dY = residual(Y, y[..., None, :], angles)
-    return y, sym(np.einsum("i,...id,...ie->...de", Wc, dY, dY)), dY
+    Wc = xp.asarray(Wc, dtype=Y.dtype)
+    return y, sym(mm(matrix_transpose(dY * Wc[:, None]), dY)), dY
 
 
 def unscented(fn, x, P, points, x_angles, y_angles):
     """The unscented transform of ``N(x, P)`` through ``fn`` with the weights of ``points``
     (an object with ``weights(n) -> (Wm, Wc, c)``). Returns ``(mean, cov, cross, sigma)``."""
+    xp = array_namespace(x, P)
     n = x.shape[-1]
     Wm, Wc, c = points.weights(n)
     sp = sigma_points(x, P, c, Wm, Wc)
     Y = fn(sp.X)
     y, C, dY = moments(Y, Wm, Wc, y_angles)
     dX = residual(sp.X, x[..., None, :], x_angles)
-    cross = np.einsum("i,...id,...ie->...de", Wc, dX, dY)
+    cross = mm(matrix_transpose(dX * xp.asarray(Wc, dtype=dX.dtype)[:, None]), dY)
     return y, C, cross, sp
 
 
@@ -228,12 +408,14 @@ def ukf_predict(x, P, f, Q, points, x_angles):
 
 def ukf_update(x, P, z, h, R, points, x_angles, z_angles) -> Update:
     r"""UKF update: :math:`S = P_{zz} + R`, :math:`K = P_{xz} S^{-1}`, :math:`P^+ = P - K S K^\top`."""
+    xp = array_namespace(x, P, z, R)
+    _T = xp.matrix_transpose
     zhat, Pzz, cross, _ = unscented(h, x, P, points, x_angles, z_angles)
     S = sym(Pzz + R)
     y = residual(z, zhat, z_angles)
-    K = _T(np.linalg.solve(S, _T(cross)))  # K = Pxz S^{-1}, S symmetric
-    x_post = wrap_state(x + (K @ y[..., None])[..., 0], x_angles)
-    P_post = sym(P - K @ S @ _T(K))
+    K = _T(solve_spd(S, _T(cross)))  # K = Pxz S^{-1}, S symmetric
+    x_post = wrap_state(x + mv(K, y), x_angles)
+    P_post = sym(P - mm(mm(K, S), _T(K)))
     return Update(x_post, P_post, y, S, K, *innovation_score(y, S))
 
 
@@ -242,20 +424,28 @@ def ukf_update(x, P, z, h, R, points, x_angles, z_angles) -> Update:
 # --------------------------------------------------------------------------------------------
 def logsumexp(a, axis: int, keepdims: bool = False):
     """log(sum(exp(a))) along ``axis``, shifted by the maximum; all ``-inf`` gives ``-inf``."""
-    m = np.max(a, axis=axis, keepdims=True)
-    m = np.where(np.isfinite(m), m, 0.0)
-    with np.errstate(divide="ignore"):
-        out = np.log(np.sum(np.exp(a - m), axis=axis, keepdims=True)) + m
-    return out if keepdims else np.squeeze(out, axis=axis)
+    xp = array_namespace(a)
+    m = xp.max(a, axis=axis, keepdims=True)
+    m = xp.where(xp.isfinite(m), m, xp.zeros_like(m))
+    with np.errstate(divide="ignore"):  # log(0) = -inf is the intended value (NumPy would warn)
+        out = xp.log(xp.sum(xp.exp(a - m), axis=axis, keepdims=True)) + m
+    return out if keepdims else xp.squeeze(out, axis=axis)
 
 
 def moment_match(w, xs, Ps):
     r"""Moment-matched Gaussian of a mixture: ``w`` (..., r), ``xs`` (r, ..., n), ``Ps`` (r, ..., n, n)
     -> :math:`\bar x = \sum w_i x_i`, :math:`\bar P = \sum w_i [P_i + (x_i - \bar x)(x_i - \bar x)^\top]`."""
-    wr = np.moveaxis(w, -1, 0)
-    x = np.einsum("r...,r...i->...i", wr, xs)
-    d = xs - x
-    P = np.einsum("r...,r...ij->...ij", wr, Ps + d[..., :, None] * d[..., None, :])
+    xp = array_namespace(w, xs, Ps)
+    wr = xp.moveaxis(w, -1, 0)  # (r, ...); the sums over the r components run term by term
+    r = wr.shape[0]
+    x = wr[0][..., None] * xs[0]
+    for i in range(1, r):
+        x = x + wr[i][..., None] * xs[i]
+    P = None
+    for i in range(r):
+        d = xs[i] - x
+        term = wr[i][..., None, None] * (Ps[i] + d[..., :, None] * d[..., None, :])
+        P = term if P is None else P + term
     return x, sym(P)
 
 
@@ -263,53 +453,25 @@ def mixing_log_weights(log_mu, Pi):
     r"""IMM mixing in log space: ``log mu_{i|j}`` (..., r_i, r_j) and ``log cbar_j`` (..., r_j),
     :math:`\bar c_j = \sum_i \Pi_{ij}\mu_i`, :math:`\mu_{i|j} = \Pi_{ij}\mu_i/\bar c_j`. A mode ``j``
     that cannot be reached (:math:`\bar c_j = 0`) keeps its own estimate (weight 1 on itself)."""
+    xp = array_namespace(log_mu, Pi)
     r = Pi.shape[-1]
     with np.errstate(divide="ignore"):
-        logPi = np.log(Pi)
+        logPi = xp.log(Pi)
     joint = log_mu[..., :, None] + logPi  # (..., i, j)
     log_cbar = logsumexp(joint, axis=-2)
-    with np.errstate(invalid="ignore"):
-        logw = joint - log_cbar[..., None, :]
-    dead = np.isneginf(log_cbar)
-    if np.any(dead):
-        eye = np.where(np.eye(r, dtype=bool), 0.0, -np.inf)
-        logw = np.where(dead[..., None, :], eye, logw)
+    dead = xp.isinf(log_cbar) & (log_cbar < 0)
+    safe = xp.where(dead, xp.zeros_like(log_cbar), log_cbar)  # no -inf - -inf
+    logw = joint - safe[..., None, :]
+    eye = xp.where(xp.eye(r, dtype=xp.bool), xp.asarray(0.0, dtype=logw.dtype),
+                   xp.asarray(-math.inf, dtype=logw.dtype))
+    logw = xp.where(dead[..., None, :], eye, logw)
     return logw, log_cbar
 
 
-# --------------------------------------------------------------------------------------------
-# the NumPy time-loop driver
-# --------------------------------------------------------------------------------------------
-def run_sequence(zs, x0, P0, batch, row_missing, predict, update, progress: bool = False):
-    """The time loop of every whole-sequence filter (the NumPy engine): at step ``k`` update with
-    ``zs[k]`` (unless the row is missing), then predict. ``predict(x, P) -> (x, P)``,
-    ``update(x, P, z) -> Update`` are kernels with their parameters bound; ``progress`` shows a
-    tqdm bar. Returns a :class:`kftrack.kalman.FilterResult`."""
-    from .kalman import FilterResult  # the result type lives with the public filter
+def __getattr__(name):
+    # the NumPy time loop moved to kftrack.engines; keep the old import path working
+    if name == "run_sequence":
+        from .engines import run_closures
 
-    T, n = zs.shape[0], x0.shape[-1]
-    x = np.broadcast_to(x0, batch + (n,)).copy()
-    P = np.broadcast_to(P0, batch + (n, n)).copy()
-    out_xp = np.empty((T,) + batch + (n,))
-    out_Pp = np.empty((T,) + batch + (n, n))
-    out_x, out_P = np.empty_like(out_xp), np.empty_like(out_Pp)
-    out_nis = np.full((T,) + batch, np.nan)
-    out_ll = np.full((T,) + batch, np.nan)
-    steps = range(T)
-    if progress:
-        from tqdm.auto import tqdm  # only when asked for
-
-        steps = tqdm(steps, desc="filter", unit="step")
-    for k in steps:
-        out_xp[k], out_Pp[k] = x, P
-        gone = np.broadcast_to(row_missing[k], batch)
-        if not gone.all():
-            z = np.where(gone[..., None], 0.0, zs[k])
-            upd = update(x, P, z)
-            x = np.where(gone[..., None], x, upd.x)
-            P = np.where(gone[..., None, None], P, upd.P)
-            out_nis[k] = np.where(gone, np.nan, upd.nis)
-            out_ll[k] = np.where(gone, np.nan, upd.loglik)
-        out_x[k], out_P[k] = x, P
-        x, P = predict(x, P)
-    return FilterResult(out_xp, out_Pp, out_x, out_P, out_nis, out_ll)
+        return run_closures
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -30,7 +30,7 @@ import numpy as np
 from ._validate import as_float_array, as_vector, check_finite, check_rng
 
 __all__ = ["noisy_runs", "per_run_error", "PairedDifference", "paired_difference", "Comparison", "compare",
-           "run_filters"]
+           "run_filters", "RunningMoments", "Moments", "run_generators", "chunked_study"]
 
 
 def noisy_runs(rng: np.random.Generator, clean, sigma, runs: int) -> np.ndarray:
@@ -239,3 +239,189 @@ def run_filters(filters: Mapping[str, Callable], zs) -> dict[str, np.ndarray]:
         res = fn(zs)
         out[name] = np.asarray(getattr(res, "x", res), dtype=float)
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# studies larger than memory: chunks of runs reduced to running moments
+# --------------------------------------------------------------------------------------------
+class Moments(NamedTuple):
+    """Summary of per-run values: ``count`` runs, their ``mean``, variance ``var`` (ddof = 1;
+    NaN for one run) and the standard error of the mean ``sem = sqrt(var / count)``. ``mean``,
+    ``var``, ``sem`` have the shape of one run's value."""
+
+    count: int
+    mean: np.ndarray
+    var: np.ndarray
+    sem: np.ndarray
+
+
+class RunningMoments:
+    r"""Mean and variance of values arriving in batches, in constant memory (Welford 1962;
+    Chan, Golub & LeVeque 1983, the parallel combination).
+
+    A batch of :math:`n_b` values is reduced by two passes to its mean :math:`\bar x_b` and
+    :math:`M_{2,b} = \sum (x - \bar x_b)^2`, then combined with the running :math:`(n_a, \bar x_a,
+    M_{2,a})`:
+
+    .. math::
+
+        n = n_a + n_b,\quad \delta = \bar x_b - \bar x_a,\quad
+        \bar x = \bar x_a + \delta\,\frac{n_b}{n},\quad
+        M_2 = M_{2,a} + M_{2,b} + \delta^2\,\frac{n_a n_b}{n},
+
+    and :math:`s^2 = M_2/(n - 1)`. The result depends on how the values were split into batches
+    only through round-off. Elementwise over the shape of one value (e.g. a per-step error curve).
+    """
+
+    def __init__(self):
+        self.count, self.mean_, self.m2 = 0, None, None
+
+    def update(self, values) -> "RunningMoments":
+        """Add a batch ``values`` ``(n_b, ...)`` (runs first); returns ``self``."""
+        v = np.asarray(values, dtype=float)
+        if v.ndim < 1 or v.shape[0] < 1:
+            raise ValueError(f"values must have shape (n_b, ...) with n_b >= 1 runs first, got shape {v.shape}")
+        if self.mean_ is not None and v.shape[1:] != self.mean_.shape:
+            raise ValueError(f"values must keep the shape of one run's value {self.mean_.shape} after the run "
+                             f"axis, got shape {v.shape}")
+        nb = v.shape[0]
+        mb = v.mean(axis=0)
+        m2b = ((v - mb) ** 2).sum(axis=0)
+        if self.mean_ is None:
+            self.count, self.mean_, self.m2 = nb, mb, m2b
+            return self
+        na, n = self.count, self.count + nb
+        delta = mb - self.mean_
+        self.mean_ = self.mean_ + delta * (nb / n)
+        self.m2 = self.m2 + m2b + delta ** 2 * (na * nb / n)
+        self.count = n
+        return self
+
+    def moments(self) -> Moments:
+        """The current :class:`Moments`."""
+        if self.mean_ is None:
+            raise ValueError("no values yet: call update first")
+        var = self.m2 / (self.count - 1) if self.count > 1 else np.full_like(self.m2, np.nan)
+        return Moments(self.count, self.mean_.copy(), var, np.sqrt(var / self.count))
+
+
+def run_generators(rng: np.random.Generator, runs: int):
+    """One independent generator per run index, made on demand for a range of runs.
+
+    Run ``i`` gets ``default_rng(SeedSequence(entropy, spawn_key=(i,)))``, the entropy (four 63-bit words)
+    drawn once from ``rng`` (the children of one ``SeedSequence`` are independent streams, NumPy's
+    ``SeedSequence.spawn`` scheme), so it draws the same numbers whatever chunk it falls in.
+
+    Parameters
+    ----------
+    rng : the generator the entropy is drawn from (advanced by four draws).
+    runs : the number of runs, >= 1.
+
+    Returns
+    -------
+    callable
+        ``gens(start, stop) -> list`` of ``stop - start`` generators for runs ``start .. stop - 1``
+        (``0 <= start <= stop <= runs``, else ``ValueError``).
+    """
+    check_rng(rng)
+    runs = _positive_int(runs, "runs")
+    entropy = [int(e) for e in rng.integers(0, 2**63, size=4)]
+
+    def gens(start: int, stop: int) -> list[np.random.Generator]:
+        if not (0 <= start <= stop <= runs):
+            raise ValueError(f"start, stop must satisfy 0 <= start <= stop <= runs = {runs}, got {start}, {stop}")
+        return [np.random.default_rng(np.random.SeedSequence(entropy, spawn_key=(i,))) for i in range(start, stop)]
+
+    return gens
+
+
+def _to_numpy(obj):
+    """NumPy view of a filter's output: arrays (NumPy, JAX, anything with ``__array__``) through
+    ``np.asarray``; tuples (named too), lists and dicts field by field; anything else unchanged."""
+    if isinstance(obj, np.ndarray):
+        return obj
+    if isinstance(obj, tuple) and hasattr(obj, "_fields"):
+        return type(obj)(*(_to_numpy(v) for v in obj))
+    if isinstance(obj, (tuple, list)):
+        return type(obj)(_to_numpy(v) for v in obj)
+    if isinstance(obj, Mapping):
+        return {k: _to_numpy(v) for k, v in obj.items()}
+    if hasattr(obj, "__array__"):
+        return np.asarray(obj)
+    return obj
+
+
+def _positive_int(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    return int(value)
+
+
+def chunked_study(simulate: Callable, estimate: Callable, score: Callable, runs: int, chunk: int,
+                  rng: np.random.Generator, *, progress: bool = False) -> dict[str, Moments]:
+    r"""A Monte Carlo study of ``runs`` runs, done ``chunk`` runs at a time in constant memory:
+    for each chunk, simulate, estimate, score, fold the per-run scores into running moments
+    (:class:`RunningMoments`), and drop the chunk.
+
+    Results do not depend on ``chunk`` beyond round-off: run ``i`` always draws from its own
+    generator (:func:`run_generators`), and the moments combine exactly (Chan et al. 1983).
+    Memory is that of one chunk plus the moments, whatever ``runs``.
+
+    Parameters
+    ----------
+    simulate : ``simulate(rngs) -> data`` for ``len(rngs)`` runs, one generator per run (draw
+        run ``i``'s noise from ``rngs[i]`` only, e.g. ``np.stack([g.standard_normal((T, m)) for g
+        in rngs], axis=1)`` for ``(T, n, m)``).
+    estimate : ``estimate(data) -> estimates``, any filter over the batch, e.g.
+        ``lambda d: kalman_filter(d.zs, ...)``. JAX arrays (or named tuples, tuples, dicts of
+        them) are converted with ``np.asarray`` before scoring.
+    score : ``score(data, estimates)`` -> per-run values with the **run axis first**, ``(n, ...)``
+        (e.g. :func:`per_run_error`, which gives ``(n,)``; a per-step curve ``(T, n)`` needs
+        ``.T``), or a mapping name -> such arrays. Paired comparisons: score the difference
+        run by run (``a - b``); its ``mean / sem`` is :class:`PairedDifference`'s ``z``.
+        Non-finite values propagate into the moments (a diverged run shows as inf or NaN).
+    runs : total number of runs (>= 1).
+    chunk : runs per chunk (>= 1; larger than ``runs`` means one chunk).
+    rng : the generator the per-run seeds are drawn from.
+    progress : show a tqdm bar over the runs.
+
+    Returns
+    -------
+    dict
+        name -> :class:`Moments` (``"score"`` when ``score`` returns a single array).
+    """
+    for name, fn in (("simulate", simulate), ("estimate", estimate), ("score", score)):
+        if not callable(fn):
+            raise TypeError(f"{name} must be callable, got {type(fn).__name__}")
+    runs = _positive_int(runs, "runs")
+    chunk = min(_positive_int(chunk, "chunk"), runs)
+    gens = run_generators(rng, runs)
+    acc: dict[str, RunningMoments] = {}
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm  # only when asked for
+
+        bar = tqdm(total=runs, desc="Monte Carlo", unit="run")
+    try:
+        for start in range(0, runs, chunk):
+            stop = min(start + chunk, runs)
+            data = simulate(gens(start, stop))
+            scores = score(data, _to_numpy(estimate(data)))
+            single = not isinstance(scores, Mapping)
+            scores = {"score": scores} if single else dict(scores)
+            if acc and set(scores) != set(acc):
+                raise ValueError(f"score must return the same names for every chunk, got {sorted(scores)} after "
+                                 f"{sorted(acc)}")
+            for name, v in scores.items():
+                v = np.asarray(_to_numpy(v), dtype=float)
+                if v.ndim < 1 or v.shape[0] != stop - start:
+                    raise ValueError(f"score must return per-run values with the run axis first, shape "
+                                     f"({stop - start}, ...) for this chunk, got shape {v.shape} for {name!r}")
+                acc.setdefault(name, RunningMoments()).update(v)
+            del data, scores
+            if bar is not None:
+                bar.update(stop - start)
+    finally:
+        if bar is not None:
+            bar.close()
+    return {name: a.moments() for name, a in acc.items()}

@@ -38,7 +38,8 @@ import numpy as np
 from ._validate import (as_matrix, as_vector, broadcast_batch, call_checked, check_angles, check_covariance, check_points,
                         check_sequence, check_state)
 from .kalman import FilterResult, Update
-from .kernels import SigmaPoints, moments, mv, run_sequence, sigma_points, ukf_predict as _k_predict
+from .engines import Kernel, check_dtype, drive, to_engine, use_jax
+from .kernels import SigmaPoints, moments, mv, sigma_points, ukf_predict as _k_predict
 from .kernels import ukf_update as _k_update
 from .kernels import unscented as _k_unscented
 
@@ -265,15 +266,21 @@ def ukf_update(x, P, z, h: Vector | np.ndarray, R, points: Points | None = None,
 
 def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector | np.ndarray, R, points: Points | None = None,
                             angle_components: Sequence[int] = (), state_angles: Sequence[int] = (),
-                            *, progress: bool = False) -> FilterResult:
+                            *, progress: bool = False, dtype=None) -> FilterResult:
     """Filter a whole measurement sequence with the UKF: update with ``zs[k]``, then predict.
 
     Same conventions as :func:`kftrack.kalman.kalman_filter` and
     :func:`kftrack.ekf.extended_kalman_filter`: time first, ``x0`` the prior of step 0, rows
     of NaN missing, one broadcast call per step for all batch members (Monte Carlo runs).
     ``h`` is a broadcasting callable or an ``(m, n)`` array ``H`` (linear measurement :math:`Hx`).
-    ``progress=True`` shows a tqdm bar.
+    ``progress=True`` shows a tqdm bar (NumPy engine only). ``dtype``: None or ``"float64"``
+    (default), or ``"float32"`` (explicit, about nine decimal digits lost); see
+    :func:`kftrack.kalman.kalman_filter`. With JAX arrays among ``zs``, ``x0``, ``P0``, ``Q``,
+    ``R`` the JAX engine runs (JAX arrays out); ``f`` and ``h`` must then be written with
+    ``jax.numpy`` (the same function objects reuse the compiled loop); concrete arrays only.
     """
+    jax_engine = use_jax(zs, x0, P0, Q, R)
+    dt_ = check_dtype(dtype, jax_engine)
     points = check_points(points)
     zs, x0, P0, Q, R, n, m, batch, row_missing = check_sequence(zs, x0, P0, Q, R)
     _check_points_input(x0, P0)
@@ -281,8 +288,27 @@ def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector | np.ndarray, R,
     z_angles = check_angles(angle_components, m)
     xb = np.broadcast_to(x0, batch + (n,))
     call_checked(f, xb, "f", (n,))
-    h = _measurement(h, n, m)
-    call_checked(h, xb, "h", (m,))
-    return run_sequence(zs, x0, P0, batch, row_missing,
-                        lambda x, P: _k_predict(x, P, f, Q, points, x_angles),
-                        lambda x, P, z: _k_update(x, P, z, h, R, points, x_angles, z_angles), progress)
+    call_checked(_measurement(h, n, m), xb, "h", (m,))
+    opts = (("points", points), ("x_angles", x_angles))
+    predict = Kernel(_predict, (("f", f),) + opts)
+    if callable(h):
+        update, upd_args = Kernel(_update, (("h", h), ("z_angles", z_angles)) + opts), (R,)
+    else:  # a linear measurement: H travels as an array (no closure over it)
+        H = as_matrix(h, "h", m, n)
+        update, upd_args = Kernel(_update_linear, (("z_angles", z_angles),) + opts), (H, R)
+    conv = lambda a: to_engine(a, jax_engine, dt_)  # noqa: E731
+    return drive(jax_engine, conv(zs), conv(row_missing), conv(x0), conv(P0), batch, batch, predict, update,
+                 pred_args=(conv(Q),), upd_args=tuple(map(conv, upd_args)), progress=progress)
+
+
+# adapters from the engines' argument order (x, P, arrays..., static options) to the kernels
+def _predict(x, P, Q, *, f, points, x_angles):
+    return _k_predict(x, P, f, Q, points, x_angles)
+
+
+def _update(x, P, z, R, *, h, points, x_angles, z_angles):
+    return _k_update(x, P, z, h, R, points, x_angles, z_angles)
+
+
+def _update_linear(x, P, z, H, R, *, points, x_angles, z_angles):
+    return _k_update(x, P, z, lambda X: mv(H, X), R, points, x_angles, z_angles)

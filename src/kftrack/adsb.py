@@ -1,0 +1,276 @@
+"""Recorded ADS-B flights (The OpenSky Network, via the ``traffic`` samples) and the
+geodetic-to-local conversion used to track them.
+
+The flights are gzipped CSV files ``data/adsb/<group>/<name>.csv.gz`` (provenance, units,
+licences and the resampling found in each file: ``data/README.md``; regenerate them with
+``python data/adsb/extract.py``). Each holds one aircraft's records in file order, with the
+columns ``t_s`` (unix seconds), ``lat_deg``, ``lon_deg``, ``alt_m`` (barometric altitude, or
+geometric where the sample has it), ``groundspeed_mps``, ``track_deg`` (as recorded: in most
+``calibration`` samples an integer wrapped to [-128, 127]) and ``vertical_rate_mps``.
+
+Three sets of flights:
+
+- :data:`CHAPTER_FLIGHTS`: the flights a chapter may look at and tune on;
+- :data:`NOISY_FLIGHTS`: flights with known defects (held positions, spoofing, time jumps,
+  missing fields), for the robustness of a tracking recipe;
+- :data:`UNSEEN_FLIGHTS`: held out; a recipe is judged on them and nothing may be tuned on them.
+
+:func:`load_flight` keeps every row it can read, duplicates and time reversals included
+(ordering and deduplication are the tracker's job), and skips and counts the rows it cannot
+use. :func:`to_enu` / :func:`from_enu` convert between WGS 84 geodetic coordinates (degrees,
+the only place degrees enter) and a local East-North-Up frame in metres (``pymap3d``).
+"""
+from __future__ import annotations
+
+import gzip
+import math
+from typing import NamedTuple
+
+import numpy as np
+import pymap3d
+
+from ._validate import as_float_array
+from .datasets import data_path
+
+__all__ = ["CHAPTER_FLIGHTS", "NOISY_FLIGHTS", "UNSEEN_FLIGHTS", "COLUMNS", "Flight", "load_flight",
+           "to_enu", "from_enu"]
+
+#: Flights a chapter may look at and tune on.
+CHAPTER_FLIGHTS: tuple[str, ...] = (
+    "calibration/toulouse", "calibration/munich", "calibration/london_heathrow", "calibration/lisbon",
+    "gliders/alpi_italiane", "gliders/cevennes", "featured/belevingsvlucht")
+#: Flights with known defects, for robustness checks.
+NOISY_FLIGHTS: tuple[str, ...] = (
+    "noisy/noisy_landing", "noisy/noisy_spoofing", "noisy/noisy_time_issue", "noisy/noisy_takeoff",
+    "noisy/noisy_ground")
+#: Held-out flights (every other ``calibration`` and ``gliders`` sample of traffic 2.13).
+UNSEEN_FLIGHTS: tuple[str, ...] = (
+    "calibration/ajaccio", "calibration/bornholm", "calibration/brussels_ils", "calibration/brussels_vor",
+    "calibration/cardiff", "calibration/funchal", "calibration/guatemala", "calibration/kingston",
+    "calibration/kiruna", "calibration/kota_kinabalu", "calibration/liege_sprimont",
+    "calibration/london_gatwick", "calibration/monastir", "calibration/montreal", "calibration/nice",
+    "calibration/noumea", "calibration/perth", "calibration/sydney", "calibration/vancouver",
+    "calibration/vienna", "gliders/alto_adige", "gliders/danube_valley", "gliders/franconia",
+    "gliders/luberon", "gliders/oxford_cambridge", "gliders/sisteron")
+#: Column names of a flight file, in order.
+COLUMNS: tuple[str, ...] = ("t_s", "lat_deg", "lon_deg", "alt_m", "groundspeed_mps", "track_deg",
+                            "vertical_rate_mps")
+
+_ALL = CHAPTER_FLIGHTS + NOISY_FLIGHTS + UNSEEN_FLIGHTS
+
+
+class Flight(NamedTuple):
+    """One aircraft's records, in file order (shape ``(K,)`` each; NaN where a field is missing).
+
+    Attributes
+    ----------
+    name : str
+        The flight's name, e.g. ``"calibration/toulouse"``.
+    t_s : numpy.ndarray
+        Time, unix seconds (not necessarily increasing or unique).
+    lat_deg, lon_deg : numpy.ndarray
+        WGS 84 latitude and longitude, degrees (finite and in range in every kept row).
+    alt_m : numpy.ndarray
+        Altitude, metres: barometric (pressure altitude), except in ``noisy/noisy_landing``,
+        whose file holds geometric altitude (its comment header says which).
+    groundspeed_mps : numpy.ndarray
+        Ground speed, m/s.
+    track_deg : numpy.ndarray
+        Track angle as recorded, degrees clockwise from north (see ``data/README.md`` for the
+        wrapped integer tracks of the calibration samples).
+    vertical_rate_mps : numpy.ndarray
+        Vertical rate, m/s, positive up.
+    skipped : dict[str, int]
+        Number of rows skipped, by reason.
+    """
+
+    name: str
+    t_s: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    alt_m: np.ndarray
+    groundspeed_mps: np.ndarray
+    track_deg: np.ndarray
+    vertical_rate_mps: np.ndarray
+    skipped: dict[str, int]
+
+
+def _parse_row(line: str) -> tuple[tuple[float, ...] | None, str | None]:
+    """The values of one data line, or ``(None, reason)``."""
+    fields = line.split(",")
+    if len(fields) != len(COLUMNS):
+        return None, f"wrong number of fields (expected {len(COLUMNS)})"
+    try:
+        values = tuple(float(f) for f in fields)
+    except ValueError:
+        return None, "non-numeric field"
+    t, lat, lon = values[:3]
+    if not math.isfinite(t):
+        return None, "non-finite time"
+    if not (math.isfinite(lat) and math.isfinite(lon)):
+        return None, "non-finite latitude or longitude"
+    if not -90.0 <= lat <= 90.0:
+        return None, "latitude outside [-90, 90]"
+    if not -180.0 <= lon <= 180.0:
+        return None, "longitude outside [-180, 180]"
+    if any(math.isinf(v) for v in values[3:]):
+        return None, "infinite altitude, speed, track or vertical rate"
+    return values, None
+
+
+def load_flight(name: str) -> Flight:
+    """Load one recorded flight, skipping and counting the rows it cannot use.
+
+    Parameters
+    ----------
+    name : str
+        ``"<group>/<name>"``, one of :data:`CHAPTER_FLIGHTS`, :data:`NOISY_FLIGHTS` or
+        :data:`UNSEEN_FLIGHTS`. The file is ``data/adsb/<name>.csv.gz``, found with
+        :func:`kftrack.datasets.data_path`.
+
+    Returns
+    -------
+    Flight
+        The kept rows in file order (shape ``(K,)`` per column). A row is skipped, and counted
+        in ``Flight.skipped`` under its reason, if it has the wrong number of fields, a
+        non-numeric field, a non-finite time, latitude or longitude, a latitude outside
+        [-90, 90] or longitude outside [-180, 180] degrees, or an infinite value in another
+        column (which :func:`to_enu` would refuse). NaN in the other columns (a missing field)
+        is kept. Duplicated and decreasing times are kept. Undecodable bytes become U+FFFD and
+        make the row non-numeric. No bad row raises.
+
+    Raises
+    ------
+    ValueError
+        If ``name`` is not a known flight (the message lists them) or the file's header is not
+        the expected column list.
+    """
+    if not isinstance(name, str) or name not in _ALL:
+        raise ValueError(f"name must be one of the ADS-B flights {', '.join(_ALL)}; got {name!r}")
+    path = data_path(f"adsb/{name}.csv.gz")
+    rows: list[tuple[float, ...]] = []
+    skipped: dict[str, int] = {}
+    header_seen = False
+    with gzip.open(path, "rt", encoding="utf-8", errors="replace", newline="") as fh:
+        for raw in fh:
+            line = raw.strip()
+            if not line or line.startswith("#"):
+                continue
+            if not header_seen:
+                if tuple(line.split(",")) != COLUMNS:
+                    raise ValueError(f"{path}: header must be {','.join(COLUMNS)!r}, got {line!r}")
+                header_seen = True
+                continue
+            values, reason = _parse_row(line)
+            if values is None:
+                skipped[reason] = skipped.get(reason, 0) + 1
+            else:
+                rows.append(values)
+    if not header_seen:
+        raise ValueError(f"{path}: no header line {','.join(COLUMNS)!r}")
+    table = np.array(rows, dtype=float).reshape(len(rows), len(COLUMNS))
+    return Flight(name, *(np.ascontiguousarray(table[:, j]) for j in range(len(COLUMNS))), skipped=skipped)
+
+
+def _check_origin(origin) -> tuple[float, float, float]:
+    arr = as_float_array(origin, "origin")
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"origin must be three finite numbers (lat0_deg, lon0_deg, h0_m), got {origin!r}")
+    if not -90.0 <= arr[0] <= 90.0 or not -180.0 <= arr[1] <= 180.0:
+        raise ValueError(f"origin latitude must be in [-90, 90] and longitude in [-180, 180] degrees, "
+                         f"got {tuple(arr.tolist())}")
+    return float(arr[0]), float(arr[1]), float(arr[2])
+
+
+def _check_degrees(value, name: str, bound: float) -> np.ndarray:
+    arr = as_float_array(value, name)
+    if arr.ndim != 1:
+        raise ValueError(f"{name} must be a 1-D array of shape (K,), got shape {arr.shape}")
+    finite = arr[np.isfinite(arr)]
+    if np.any(np.abs(finite) > bound) or np.any(np.isinf(arr)):
+        raise ValueError(f"{name} must lie in [-{bound:g}, {bound:g}] degrees (NaN allowed)")
+    return arr
+
+
+def to_enu(lat_deg, lon_deg, alt_m=None, origin=None) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """Geodetic WGS 84 coordinates to a local East-North-Up frame, in metres.
+
+    The fixes are mapped to Earth-centred Earth-fixed coordinates and rotated into the tangent
+    plane at the origin,
+    :math:`[e, n, u]^T = R(\\varphi_0, \\lambda_0)\\,(p_{ECEF}(\\varphi, \\lambda, h) - p_{ECEF}(\\varphi_0, \\lambda_0, h_0))`
+    (``pymap3d.geodetic2enu``, vectorised).
+
+    Parameters
+    ----------
+    lat_deg, lon_deg : array_like, shape (K,)
+        Latitude in [-90, 90] and longitude in [-180, 180], degrees. NaN propagates to the row.
+    alt_m : array_like, shape (K,), optional
+        Height in metres (taken as height above the ellipsoid); zeros when omitted.
+    origin : tuple (lat0_deg, lon0_deg, h0_m), optional
+        Origin of the frame; default the first row whose latitude, longitude (and altitude, if
+        given) are all finite.
+
+    Returns
+    -------
+    enu : numpy.ndarray, shape (K, 3)
+        East, north, up, metres.
+    origin : tuple (lat0_deg, lon0_deg, h0_m)
+        The origin used, to pass to :func:`from_enu`.
+    """
+    lat = _check_degrees(lat_deg, "lat_deg", 90.0)
+    lon = _check_degrees(lon_deg, "lon_deg", 180.0)
+    if lon.shape != lat.shape:
+        raise ValueError(f"lon_deg must have the shape of lat_deg {lat.shape}, got {lon.shape}")
+    if alt_m is None:
+        alt = np.zeros_like(lat)
+    else:
+        alt = as_float_array(alt_m, "alt_m")
+        if alt.shape != lat.shape:
+            raise ValueError(f"alt_m must have the shape of lat_deg {lat.shape}, got {alt.shape}")
+        if np.any(np.isinf(alt)):
+            raise ValueError("alt_m must be finite or NaN, but it contains inf")
+    if origin is None:
+        good = np.flatnonzero(np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt))
+        if good.size == 0:
+            raise ValueError("origin cannot default to the first fix: no row of lat_deg, lon_deg"
+                             + ("" if alt_m is None else ", alt_m") + " is finite; pass origin")
+        k = int(good[0])
+        origin = (float(lat[k]), float(lon[k]), float(alt[k]))
+    lat0, lon0, h0 = _check_origin(origin)
+    e, n, u = pymap3d.geodetic2enu(lat, lon, alt, lat0, lon0, h0, deg=True)
+    enu = np.stack([np.asarray(e, float), np.asarray(n, float), np.asarray(u, float)], axis=-1)
+    return enu.reshape(lat.shape[0], 3), (lat0, lon0, h0)
+
+
+def from_enu(enu, origin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Local East-North-Up coordinates (metres) back to WGS 84 geodetic coordinates.
+
+    The inverse of :func:`to_enu` (``pymap3d.enu2geodetic``; the ECEF-to-geodetic step is the
+    non-iterative method of You 2000). ``to_enu(*from_enu(enu, origin), origin=origin)``
+    returns ``enu`` to round-off: ``tests/test_adsb.py`` bounds the error by
+    :math:`50\\,\\lVert p_{ECEF}\\rVert\\,\\varepsilon \\approx 7\\times 10^{-8}` m within
+    300 km of the origin and up to 15 km height (about 1e-8 m measured).
+
+    Parameters
+    ----------
+    enu : array_like, shape (K, 3)
+        East, north, up, metres (NaN propagates to the row).
+    origin : tuple (lat0_deg, lon0_deg, h0_m)
+        The frame's origin, as returned by :func:`to_enu`.
+
+    Returns
+    -------
+    lat_deg, lon_deg, alt_m : numpy.ndarray, shape (K,)
+        Latitude and longitude in degrees, height above the ellipsoid in metres.
+    """
+    arr = as_float_array(enu, "enu")
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"enu must have shape (K, 3), got shape {arr.shape}")
+    if np.any(np.isinf(arr)):
+        raise ValueError("enu must be finite or NaN, but it contains inf")
+    if origin is None:
+        raise TypeError("origin must be (lat0_deg, lon0_deg, h0_m), the origin returned by to_enu; got None")
+    lat0, lon0, h0 = _check_origin(origin)
+    lat, lon, alt = pymap3d.enu2geodetic(arr[:, 0], arr[:, 1], arr[:, 2], lat0, lon0, h0, deg=True)
+    return (np.asarray(lat, float).reshape(-1), np.asarray(lon, float).reshape(-1),
+            np.asarray(alt, float).reshape(-1))

@@ -1,0 +1,714 @@
+r"""Tracking recorded aircraft (chapter 18): the recipe behind :func:`one_step_predictions`.
+
+The recipe predicts each recorded position from the earlier rows only (strictly causal), with
+a constant-velocity Kalman filter whose measurement model is that of the *recorded* samples,
+not of a raw sensor. Three facts about the OpenSky/traffic samples (data/README.md) shape it:
+
+1. **A held position is not a measurement.** A row that repeats the previous position is the
+   resampler holding the last report: it is skipped (``repeated_position``), the filter keeps
+   predicting.
+2. **Report lag.** A recorded fix at the stream's time stamp is the last position received
+   before it, so it is the true position up to one sampling interval :math:`\Delta` earlier:
+   :math:`z = p(t - \lambda)`, :math:`\lambda \sim U(0, \Delta)`. Taking the state as the
+   track delayed by :math:`\Delta/2`, the error :math:`v(\Delta/2 - \lambda)` lies along the
+   velocity, with variance :math:`\Delta^2 |v|^2/12`. The measurement covariance is therefore
+   state dependent (EKF-style, velocity from the prediction),
+
+   .. math::
+
+       R(x^-) = c_\lambda \frac{\Delta^2}{12}\, v^- v^{-\top} + (r_0 + r_q) I ,
+
+   with :math:`\Delta` the median of the last :data:`DT_WINDOW` row intervals (estimated online),
+   :math:`r_q = (111\,320\,\mathrm{m} \times 10^{-d})^2/12` the quantisation of positions
+   written with :math:`d` decimals (online: the most decimals seen so far in the track, so
+   1e-4 deg gliders get about 10 m², 1e-6 deg fixes nothing), :math:`r_0` a white floor and
+   :math:`c_\lambda` a scale (1 if the lag model is exact).
+3. **Interpolated rows model the resampler.** On a regular grid the resampler fills the time
+   between two recorded fixes with points on the straight segment between them, at the
+   time-proportional point. Such a row carries no new information, and the row after it lies
+   on the same segment (it is another interpolated row or the segment's end). Row :math:`j` is
+   recognised as interpolated one row late, when row :math:`j+1` arrives: rows
+   :math:`j-1, j, j+1` are collinear at the time-proportional point to :data:`COLLINEAR_DEG`
+   degrees in latitude and longitude (the files keep 10 decimals). Interpolated rows are not
+   used to update the filter. When the previous row's status is still unknown, the prediction
+   is the conditional mean of the two hypotheses,
+
+   .. math::
+
+       \hat z_k = \pi_k\, \hat z^{\mathrm{seg}}_k + (1 - \pi_k)\, \hat z^{\mathrm{KF}}_k ,
+
+   with :math:`\hat z^{\mathrm{seg}}_k` the extrapolation of the last two rows along their
+   segment (exact if row :math:`k-1` is interpolated), :math:`\hat z^{\mathrm{KF}}_k` the
+   filter's prediction after updating with row :math:`k-1`, and :math:`\pi_k` the probability
+   that row :math:`k-1` is interpolated given the status of row :math:`k-2`, counted online
+   from the flight's earlier rows (a two-state Markov chain with a uniform Beta prior). On a
+   flight without interpolated rows :math:`\pi_k \to 0` and the recipe is the filter.
+
+The process model is an IMM (Blom & Bar-Shalom 1988) of four white-noise-acceleration modes
+(spectral densities :data:`Q_MODES`, m²/s³): cruise and manoeuvre at constant velocity, and a
+left and a right turn at the known rate :data:`TURN_DEG_S` (:data:`OMEGA_MODES`,
+:class:`kftrack.models.KnownTurn` with its exact turning ``Q``), all with the same report-lag
+``R``. Markov matrix from the mean sojourn times :data:`SOJOURN_S` for any interval,
+:math:`\Pi(\Delta t) = e^{\Lambda \Delta t}` of the generator with
+:math:`\Lambda_{jj} = -1/\tau_j` and a mode left for each other mode at the same rate;
+``F``, ``Q`` and ``Pi`` are cached per interval.
+A row with one coordinate equal to the previous row's has that coordinate held by the resampler:
+only the other coordinate is measured (idea 1 per coordinate).
+
+**Provenance of the constants (PROVISIONAL).** :data:`Q_MODES`, :data:`SOJOURN_S`,
+:data:`TURN_DEG_S`, :data:`LAG_SCALE` and :data:`R_FLOOR` were chosen from a small scan of the one-step RMSE on the
+chapter's training flights only (nothing on :data:`kftrack.adsb.UNSEEN_FLIGHTS`);
+:func:`fit_recipe` (maximum likelihood of the innovations) is written but its fit has not yet
+been run to convergence and stored here.
+
+State order: ``[x, vx, y, vy]`` (east, north; m, m/s) in a local East-North-Up frame whose
+origin is the flight's first finite fix (degrees only at the edge, via
+:func:`kftrack.adsb.to_enu`).
+
+Bad data (never raises on a bad row; counted by reason in :attr:`TrackResult.counts`):
+
+* ``non_finite``: time, latitude or longitude not finite or out of range;
+* ``non_increasing_time``: a time not after the last row used;
+* ``repeated_position``: the latitude and longitude of the last row used;
+* ``gated``: normalized innovation squared above :math:`\gamma = F^{-1}_{\chi^2_m}(1-\alpha)`
+  (:math:`m` measured coordinates), :math:`\alpha` = :data:`FALSE_REJECTION` *under the model*.
+  The data's tails are much heavier than the model's (genuine fixes after long interpolated
+  segments), so a gated row is not rejected but down-weighted (Huber-type: its innovation
+  covariance is inflated by :math:`\mathrm{NIS}/\gamma`); after :data:`LOST_AFTER` gated rows
+  in a row the track restarts from the last two (``reinit_lost``), with both positions carrying
+  the measurement covariance :math:`R` of point 2 in the two-point start;
+* ``implausible_speed``: a two-point start, or a step from the last row used, faster than
+  :data:`MAX_SPEED_MPS` (physically impossible here: on ``featured/belevingsvlucht`` these are
+  forward spikes of 3-6 x speed x dt that are held for a few rows and after which the track
+  returns to its earlier line); skipped, counted with the gated rows towards :data:`LOST_AFTER`;
+* ``reinit_gap``: a step longer than :data:`REINIT_GAP_S` (:func:`reinit_gap`) restarts the
+  track (two-point initialisation) instead of predicting across it;
+* ``init``: the first row of a track (no prediction); ``used``: a prediction was made and the
+  row was taken.
+"""
+from __future__ import annotations
+
+import bisect
+import math
+from collections import deque
+from typing import NamedTuple
+
+import numpy as np
+
+from ._validate import as_float_array
+
+__all__ = [
+    "TrackResult", "track_flight", "one_step_predictions", "scored_rows", "cv_predictions",
+    "two_point_init", "fit_recipe", "reinit_gap", "innovation_loglik", "Q_MODES", "SOJOURN_S", "OMEGA_MODES",
+    "TURN_DEG_S", "Q_ACCEL", "LAG_SCALE",
+    "R_FLOOR", "FALSE_REJECTION", "LOST_AFTER", "REINIT_GAP_S", "MAX_SPEED_MPS", "COLLINEAR_DEG",
+    "DT_WINDOW", "REASONS",
+]
+
+#: Turn rate of the two known-rate turn modes, deg/s (chosen on the chapter flights only: 1.5
+#: beat 1, 2, 2.5, 3 and pairs such as 1.5 and 3.5 on featured/belevingsvlucht, the binding flight).
+TURN_DEG_S = 1.5
+#: Turn rates of the modes, rad/s: cruise, manoeuvre (both constant velocity), left and right
+#: turn (counter-clockwise positive).
+OMEGA_MODES = (0.0, 0.0, math.radians(TURN_DEG_S), -math.radians(TURN_DEG_S))
+#: White-acceleration spectral densities of the modes, m²/s³ (provisional, module docstring).
+Q_MODES = (1.0, 50.0, 5.0, 5.0)
+#: Mean sojourn times of the modes, s.
+SOJOURN_S = (120.0, 30.0, 60.0, 60.0)
+#: Spectral density used for the re-initialisation gap (the cruise mode), m²/s³.
+Q_ACCEL = Q_MODES[0]
+#: Scale :math:`c_\lambda` of the report-lag variance :math:`\Delta^2|v|^2/12` (provisional).
+LAG_SCALE = 1.0
+#: White measurement-noise floor :math:`r_0` per axis, m² (provisional; 200 m² is no worse than
+#: 25 m² on any chapter flight and better on six of seven, H19's scan of the one-step RMSE).
+R_FLOOR = 200.0
+#: False-rejection probability of the NIS gate under the model.
+FALSE_REJECTION = 1e-4
+#: Consecutive gated rows after which the track restarts from the last two.
+LOST_AFTER = 3
+#: Two-point initialisations (and speed estimates) faster than this (m/s) are refused.
+MAX_SPEED_MPS = 400.0
+#: Tolerance (degrees) of the collinearity test that recognises interpolated rows.
+COLLINEAR_DEG = 1e-9
+#: Number of recent row intervals whose median is the nominal interval :math:`\Delta`.
+DT_WINDOW = 15
+#: Predicted position standard deviation (m) beyond which a gap restarts the track.
+GAP_STD_M = 1000.0
+_M_PER_DEG = 111_320.0
+_BIG = 1e12
+_LOG_BIG = math.log(_BIG)
+
+#: Reasons, the keys of :attr:`TrackResult.counts` (every row gets exactly one).
+REASONS = ("used", "init", "non_finite", "non_increasing_time", "repeated_position", "gated",
+           "reinit_gap", "reinit_lost", "implausible_speed")
+
+
+def reinit_gap(q: float = Q_ACCEL, std_m: float = GAP_STD_M) -> float:
+    r"""Gap (s) beyond which the track restarts instead of predicting across.
+
+    Under the white-acceleration model the predicted position variance grows per axis as
+    :math:`q T^3/3` (plus the filtered variance, which is small next to it), so the gap is
+    the time at which the prediction's standard deviation reaches ``std_m`` metres,
+    :math:`T = (3\,\mathrm{std}^2/q)^{1/3}`: a prediction that far out is worth less than a
+    fresh two-point start.
+    """
+    return float((3.0 * std_m ** 2 / q) ** (1.0 / 3.0))
+
+
+#: The re-initialisation gap of the recipe (s), :func:`reinit_gap` at :data:`Q_ACCEL`.
+REINIT_GAP_S = reinit_gap()
+
+
+class TrackResult(NamedTuple):
+    """Output of :func:`track_flight`, one row per input row (``K`` rows).
+
+    Attributes
+    ----------
+    lat_pred_deg, lon_pred_deg : (K,) one-step predictions of row k from rows 0..k-1 (NaN where
+        there is none).
+    enu : (K, 2) the rows in the local ENU frame (m; NaN for non-finite rows).
+    enu_pred : (K, 2) the predictions in the same frame.
+    origin : (lat0_deg, lon0_deg, 0.0) of the ENU frame (NaN if no finite row).
+    mode_prob : (K, r) IMM posterior mode probabilities after row k (columns in the order of
+        :data:`OMEGA_MODES`: cruise, manoeuvre, left turn, right turn; NaN where no update).
+    nis : (K,) normalized innovation squared of row k under the filter (NaN where not computed).
+    reason : (K,) str, one of :data:`REASONS`.
+    counts : dict, number of rows per reason (every key of :data:`REASONS`).
+    speed_mps : (K,) estimated speed after row k (NaN where no track).
+    velocity : (K, 2) estimated velocity after row k (m/s).
+    interpolated : (K,) bool, row k was recognised (one row late) as an interpolated row.
+    gap_s : the re-initialisation gap (s).
+    """
+
+    lat_pred_deg: np.ndarray
+    lon_pred_deg: np.ndarray
+    enu: np.ndarray
+    enu_pred: np.ndarray
+    origin: tuple
+    mode_prob: np.ndarray
+    nis: np.ndarray
+    reason: np.ndarray
+    counts: dict
+    speed_mps: np.ndarray
+    velocity: np.ndarray
+    interpolated: np.ndarray
+    gap_s: float
+
+
+def _column(value, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be a 1-D array of numbers, got {type(value).__name__}") from exc
+    if arr.ndim != 1:
+        raise ValueError(f"{name} must be a 1-D array (one value per row), got shape {arr.shape}")
+    return arr
+
+
+def _columns(t_s, lat_deg, lon_deg):
+    t, lat, lon = _column(t_s, "t_s"), _column(lat_deg, "lat_deg"), _column(lon_deg, "lon_deg")
+    if not t.shape == lat.shape == lon.shape:
+        raise ValueError(f"t_s, lat_deg and lon_deg must have the same length, got {t.size}, {lat.size}, "
+                         f"{lon.size}")
+    return t, lat, lon
+
+
+def _frame_of(t, lat_deg, lon_deg):
+    """``(enu (K, 2), origin, ok (K,))``: the finite, in-range rows in the ENU frame at the first one."""
+    from .adsb import to_enu
+    t, lat, lon = _columns(t, lat_deg, lon_deg)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(t) & np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90.0) & (np.abs(lon) <= 180.0)
+    enu = np.full((t.size, 2), np.nan)
+    origin = (math.nan, math.nan, 0.0)
+    if ok.any():
+        i0 = int(np.argmax(ok))
+        origin = (float(lat[i0]), float(lon[i0]), 0.0)
+        e, _ = to_enu(lat[ok], lon[ok], origin=origin)
+        enu[ok] = e[:, :2]
+    return enu, origin, ok
+
+
+def two_point_init(z0, z1, dt: float, r: float):
+    r"""State ``[x, vx, y, vy]`` and covariance from two positions ``dt`` seconds apart.
+
+    :math:`x = [z_1, (z_1 - z_0)/\Delta t]` per axis with covariance
+    :math:`\begin{bmatrix} r & r/\Delta t\\ r/\Delta t & 2r/\Delta t^2\end{bmatrix}` (independent
+    errors of variance ``r`` on both positions; Bar-Shalom et al. 2001, §5.5.3).
+    """
+    z0, z1 = np.asarray(z0, dtype=float), np.asarray(z1, dtype=float)
+    v = (z1 - z0) / dt
+    x = np.array([z1[0], v[0], z1[1], v[1]])
+    P = np.zeros((4, 4))
+    for i, j in ((0, 1), (2, 3)):
+        P[i, i], P[i, j], P[j, i], P[j, j] = r, r / dt, r / dt, 2.0 * r / dt ** 2
+    return x, P
+
+
+def _decimals(v: float) -> int:
+    """Decimals (4..10) needed to write ``v`` (10 if more)."""
+    for d in range(4, 10):
+        s = v * 10.0 ** d
+        if abs(s - round(s)) < 1e-3:
+            return d
+    return 10
+
+
+class _Modes:
+    """Cached per-interval matrices of the recipe's IMM: ``F_j(dt)`` (r, 4, 4) and ``Q_j(dt)``
+    (r, 4, 4) of the modes (:class:`kftrack.models.KnownTurn` at rate ``omega_j`` with continuous
+    white acceleration of spectral density ``q_j``; ``omega_j = 0`` is constant velocity), and the
+    Markov matrix ``Pi(dt) = expm(Lambda dt)`` (r, r) of the continuous-time chain whose mode ``j``
+    lasts ``tau_j`` on average and is left for each other mode at the same rate."""
+
+    def __init__(self, q, tau, omega):
+        from .models import KnownTurn
+        self.models = [KnownTurn(omega=float(w), ndim=2, q=float(qj)) for qj, w in zip(q, omega)]
+        tau = np.asarray(tau, float)
+        r = tau.size
+        lam = (1.0 / tau)[:, None] * (np.ones((r, r)) - np.eye(r)) / max(r - 1, 1)
+        self.gen = lam - np.diag(lam.sum(axis=1))
+        self.cache = {}
+
+    def __call__(self, dt: float):
+        got = self.cache.get(dt)
+        if got is None:
+            from scipy.linalg import expm
+            F = np.stack([m.F(dt) for m in self.models])
+            Q = np.stack([m.Q(dt) for m in self.models])
+            Pi = expm(self.gen * dt)
+            Pi /= Pi.sum(axis=1, keepdims=True)
+            got = (F, Q, Pi)
+            if len(self.cache) < 4096:
+                self.cache[dt] = got
+        return got
+
+
+def _imm_predict(mu, xs, Ps, F, Q, Pi):
+    """IMM mixing and per-mode prediction (Blom & Bar-Shalom 1988): (c, xp (r, 4), Pp (r, 4, 4))."""
+    c = mu @ Pi
+    w = mu[:, None] * Pi / c[None, :]                 # w[i, j] = P(mode i at k-1 | mode j at k)
+    x0 = w.T @ xs                                     # (r, 4)
+    d = xs[:, None, :] - x0[None, :, :]               # (i, j, 4)
+    P0 = np.einsum("ij,iab->jab", w, Ps) + np.einsum("ij,ija,ijb->jab", w, d, d)
+    xp = np.einsum("jab,jb->ja", F, x0)
+    Pp = F @ P0 @ F.transpose(0, 2, 1) + Q
+    return c, xp, Pp
+
+
+def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, use_segments=True, robust=True):
+    """The recipe's loop (no validation). Returns per-row arrays and the log-likelihood."""
+    K = t.size
+    r = len(q)
+    pred = np.full((K, 2), np.nan)
+    nis = np.full(K, np.nan)
+    vel = np.full((K, 2), np.nan)
+    mprob = np.full((K, r), np.nan)
+    interp = np.zeros(K, dtype=bool)
+    reason = ["non_finite"] * K
+    model = _Modes(q, tau, omega)
+    tl = t.tolist()
+    la, lo = lat.tolist(), lon.tolist()
+    okl = ok.tolist()
+    E, N = enu[:, 0].tolist(), enu[:, 1].tolist()
+    loglik, n_lik = 0.0, 0
+    rows = []                  # accepted rows of the current track, last three kept
+    status = {}                # row -> 0 recorded fix, 1 interpolated (known one row late)
+    counts = {}                # (status of row j-1, decimals of row j) -> [fixes, interpolated] + Beta(1, 1)
+    digits = {}                # row -> decimals (capped at 7)
+    committed = None           # IMM state (mu, xs, Ps) after the rows known to be fixes, at time tc
+    tc = None
+    tent = None                # committed updated with the last row
+    dts, dts_sorted = deque(), []
+    dmax = 4
+    missed = []
+    suspect = set()            # gated rows: kept out of the segment extrapolation
+    last_t, last_ll = -math.inf, None
+    mu0 = np.full(r, 1.0 / r)
+    log2pi = math.log(2.0 * math.pi)
+
+    def start(z0, z1, dt0, delta=None):
+        x, P = two_point_init(z0, z1, dt0, r_floor + 100.0)
+        if delta is not None:
+            # a restart inside a track: both positions carry the measurement error of point 2,
+            # R = c (Delta^2/12) v v^T + r0 I (v from the two points), not a white r I
+            v = np.array([x[1], x[3]])
+            Rm = (lag_scale * delta * delta / 12.0 * np.outer(v, v)
+                  + (r_floor + (_M_PER_DEG * 10.0 ** -dmax) ** 2 / 12.0) * np.eye(2))
+            ip, iv = [0, 2], [1, 3]
+            P = np.zeros((4, 4))
+            P[np.ix_(ip, ip)] = Rm
+            P[np.ix_(ip, iv)] = P[np.ix_(iv, ip)] = Rm / dt0
+            P[np.ix_(iv, iv)] = 2.0 * Rm / dt0 ** 2
+        return (mu0, np.tile(x, (r, 1)), np.tile(P, (r, 1, 1)))
+
+    for k in range(K):
+        if not okl[k]:
+            continue
+        tk = tl[k]
+        if tk <= last_t:
+            reason[k] = "non_increasing_time"
+            continue
+        if last_ll is not None and la[k] == last_ll[0] and lo[k] == last_ll[1]:
+            reason[k] = "repeated_position"
+            continue
+        zk = np.array([E[k], N[k]])
+        digits[k] = min(max(_decimals(la[k]), _decimals(lo[k])), 7)
+        if rows and tk - last_t > gap:
+            rows, committed, tent, missed = [], None, None, []
+            reason[k] = "reinit_gap"
+        if not rows:
+            rows = [k]
+            last_t, last_ll = tk, (la[k], lo[k])
+            if reason[k] != "reinit_gap":
+                reason[k] = "init"
+            dmax = digits[k]
+            continue
+        if tent is None:          # second row of a track: two-point start
+            j = rows[-1]
+            dt0 = tk - tl[j]
+            z0 = np.array([E[j], N[j]])
+            if math.hypot(zk[0] - z0[0], zk[1] - z0[1]) / dt0 > MAX_SPEED_MPS:
+                rows = [k]
+                reason[k] = "implausible_speed"
+                last_t, last_ll = tk, (la[k], lo[k])
+                continue
+            committed = tent = start(z0, zk, dt0)
+            tc = tk
+            rows.append(k)
+            reason[k] = "init"
+            vel[k] = zk - z0
+            vel[k] /= dt0
+            last_t, last_ll = tk, (la[k], lo[k])
+            dts.append(dt0)
+            bisect.insort(dts_sorted, dt0)
+            continue
+        # ---- predict row k: filter after row k-1, and the segment through rows k-2, k-1 ----
+        j1 = rows[-1]
+        dt = tk - tl[j1]
+        F, Q, Pi = model(dt)
+        mu, xs, Ps = tent
+        c = mu @ Pi
+        w = mu[:, None] * Pi / c[None, :]
+        zf = c @ np.einsum("jab,jb->ja", F[:, [0, 2]], w.T @ xs)
+        if use_segments and len(rows) >= 2:
+            j2 = rows[-2]
+            cnt = counts.setdefault((status.get(j2, 0), digits[j1]), [1.0, 1.0])
+            p_seg = cnt[1] / (cnt[0] + cnt[1])
+            a = dt / (tl[j1] - tl[j2])
+            zl = np.array([E[j1] + (E[j1] - E[j2]) * a, N[j1] + (N[j1] - N[j2]) * a])
+            pred[k] = zf + p_seg * (zl - zf)
+        else:
+            pred[k] = zf
+        # ---- a step faster than MAX_SPEED_MPS from the last row used is not a fix: skipped, and
+        # its held copies with it (a forward spike then held, featured/belevingsvlucht); after
+        # LOST_AFTER rejected rows in a row, two consistent ones restart the track (relocation)
+        if math.hypot(zk[0] - E[j1], zk[1] - N[j1]) > MAX_SPEED_MPS * dt:
+            missed.append(k)
+            reason[k] = "implausible_speed"
+            if len(missed) >= LOST_AFTER:
+                a_ = missed[-2]
+                if math.hypot(zk[0] - E[a_], zk[1] - N[a_]) <= MAX_SPEED_MPS * (tk - tl[a_]):
+                    committed = tent = start(np.array([E[a_], N[a_]]), zk, tk - tl[a_],
+                                             dts_sorted[len(dts_sorted) // 2])
+                    tc = tk
+                    rows, status, missed = [a_, k], {}, []
+                    reason[k] = "reinit_lost"
+            last_t, last_ll = tk, (la[k], lo[k])
+            continue
+        # ---- status of row k-1, now known: collinear with its neighbours? -------------
+        s1 = 0
+        if len(rows) >= 2:
+            j2 = rows[-2]
+            w = (tl[j1] - tl[j2]) / (tk - tl[j2])
+            if (abs(la[j2] + (la[k] - la[j2]) * w - la[j1]) <= COLLINEAR_DEG
+                    and abs(lo[j2] + (lo[k] - lo[j2]) * w - lo[j1]) <= COLLINEAR_DEG):
+                s1 = 1
+            status[j1] = s1
+            interp[j1] = bool(s1)
+            counts.setdefault((status.get(j2, 0), digits[j1]), [1.0, 1.0])[s1] += 1.0
+        if s1 == 0:
+            committed, tc = tent, tl[j1]
+        # ---- filter: committed state predicted to row k and updated with it ----------
+        F, Q, Pi = model(tk - tc)
+        c, xp, Pp = _imm_predict(*committed, F, Q, Pi)
+        dts.append(dt)
+        bisect.insort(dts_sorted, dt)
+        if len(dts) > DT_WINDOW:
+            del dts_sorted[bisect.bisect_left(dts_sorted, dts.popleft())]
+        delta = dts_sorted[len(dts_sorted) // 2]
+        dmax = max(dmax, digits[k])
+        r0 = r_floor + (_M_PER_DEG * 10.0 ** -dmax) ** 2 / 12.0
+        cl = lag_scale * delta * delta / 12.0
+        vx, vy = c @ xp[:, 1], c @ xp[:, 3]
+        S00 = Pp[:, 0, 0] + (cl * vx * vx + r0)
+        S01 = Pp[:, 0, 2] + cl * vx * vy
+        S11 = Pp[:, 2, 2] + (cl * vy * vy + r0)
+        # a coordinate equal to the previous row's is held by the resampler: not measured
+        held = 0 if la[k] != last_ll[0] else 2       # latitude held: north not measured
+        if lo[k] == last_ll[1]:
+            held = 1                                 # longitude held: east not measured
+        if held == 1:
+            S00 = S00 + _BIG
+        elif held == 2:
+            S11 = S11 + _BIG
+        det = S00 * S11 - S01 * S01
+        y0, y1 = zk[0] - xp[:, 0], zk[1] - xp[:, 2]
+        m = (S11 * y0 * y0 - 2.0 * S01 * y0 * y1 + S00 * y1 * y1) / det
+        logl = -0.5 * (m + np.log(det)) - log2pi + np.log(c)
+        if held:
+            logl += 0.5 * (_LOG_BIG + log2pi)        # the density of the one measured coordinate
+        top = logl.max()
+        lik = np.exp(logl - top)
+        tot = lik.sum()
+        loglik += top + math.log(tot)
+        n_lik += 1
+        # NIS of the moment-matched predictive density
+        zb0, zb1 = c @ xp[:, 0], c @ xp[:, 2]
+        d0, d1 = xp[:, 0] - zb0, xp[:, 2] - zb1
+        T00, T01, T11 = c @ (S00 + d0 * d0), c @ (S01 + d0 * d1), c @ (S11 + d1 * d1)
+        e0, e1 = zk[0] - zb0, zk[1] - zb1
+        nis[k] = (T11 * e0 * e0 - 2.0 * T01 * e0 * e1 + T00 * e1 * e1) / (T00 * T11 - T01 * T01)
+        infl = 1.0
+        if nis[k] > gamma[1 if held else 2]:
+            missed.append(k)
+            reason_k = "gated"
+            if len(missed) >= LOST_AFTER:
+                a_ = missed[-2]
+                committed = tent = start(np.array([E[a_], N[a_]]), zk, tk - tl[a_], delta)
+                tc = tk
+                rows, status, missed = [a_, k], {}, []
+                reason[k] = "reinit_lost"
+                last_t, last_ll = tk, (la[k], lo[k])
+                continue
+            if robust:
+                infl = nis[k] / gamma[1 if held else 2]   # Huber-type: innovation covariance inflated to the gate
+                suspect.add(k)
+            else:
+                reason[k] = "gated"
+                continue
+        else:
+            missed = []
+            reason_k = "used"
+        Sinv = np.stack([np.stack([S11, -S01], -1), np.stack([-S01, S00], -1)], -2) / (det[:, None, None] * infl)
+        PHt = Pp[:, :, [0, 2]]                           # (r, 4, 2)
+        Kg = PHt @ Sinv
+        xs = xp + np.einsum("jab,jb->ja", Kg, np.stack([y0, y1], -1))
+        Ps = Pp - Kg @ PHt.transpose(0, 2, 1)
+        Ps = 0.5 * (Ps + Ps.transpose(0, 2, 1))
+        mu = lik / tot
+        tent = (mu, xs, Ps)
+        rows.append(k)
+        if len(rows) > 3:
+            del rows[0]
+        reason[k] = reason_k
+        mprob[k] = mu
+        vel[k] = mu @ xs[:, [1, 3]]
+        last_t, last_ll = tk, (la[k], lo[k])
+    return pred, nis, vel, mprob, interp, np.array(reason, dtype=object).astype(str), loglik, n_lik
+
+
+def _gamma(false_rejection: float) -> dict:
+    """Gate thresholds for one and two measured coordinates."""
+    from scipy.stats import chi2
+    return {1: float(chi2.isf(false_rejection, 1)), 2: float(chi2.isf(false_rejection, 2))}
+
+
+def track_flight(t_s, lat_deg, lon_deg, *, q=Q_MODES, tau=SOJOURN_S, omega=OMEGA_MODES, lag_scale: float = LAG_SCALE,
+                 r_floor: float = R_FLOOR, false_rejection: float = FALSE_REJECTION,
+                 use_segments: bool = True) -> TrackResult:
+    """Run the recipe over one flight, strictly causally, and say what happened to every row.
+
+    Parameters
+    ----------
+    t_s : (K,) times (s); lat_deg, lon_deg : (K,) WGS-84 latitude and longitude (degrees).
+        Rows may be bad (non-finite, repeated, out of order): they are skipped and counted.
+    q, tau, omega : per mode: spectral density (m²/s³), mean sojourn time (s) and turn rate
+        (rad/s); defaults :data:`Q_MODES`, :data:`SOJOURN_S`, :data:`OMEGA_MODES`.
+    lag_scale, r_floor : the measurement model's constants (module docstring), defaults
+        :data:`LAG_SCALE`, :data:`R_FLOOR`.
+    false_rejection : false-rejection probability of the NIS gate under the model, in (0, 1).
+    use_segments : model the resampler's interpolated rows (module docstring, point 3).
+
+    Returns
+    -------
+    TrackResult
+    """
+    t, lat, lon = _columns(t_s, lat_deg, lon_deg)
+    q = tuple(_positive(v, "q") for v in q)
+    tau = tuple(_positive(v, "tau") for v in tau)
+    omega = tuple(float(as_float_array(v, "omega")) for v in omega)
+    if not len(q) == len(tau) == len(omega) >= 1 or not all(math.isfinite(v) for v in omega):
+        raise ValueError(f"q, tau and omega must hold one finite value per mode, got {q!r}, {tau!r}, {omega!r}")
+    lag_scale = _nonneg(lag_scale, "lag_scale")
+    r_floor = _nonneg(r_floor, "r_floor")
+    alpha = _nonneg(false_rejection, "false_rejection")
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"false_rejection must lie in (0, 1), got {false_rejection!r}")
+    enu, origin, ok = _frame_of(t, lat, lon)
+    gap = REINIT_GAP_S
+    pred, nis, vel, mprob, interp, reason, _, _ = _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor,
+                                                       _gamma(alpha), gap, bool(use_segments))
+    lat_p, lon_p = _to_degrees(pred, origin)
+    counts = {r: int(np.count_nonzero(reason == r)) for r in REASONS}
+    speed = np.hypot(vel[:, 0], vel[:, 1])
+    return TrackResult(lat_p, lon_p, enu, pred, origin, mprob, nis, reason, counts, speed, vel, interp, gap)
+
+
+def _to_degrees(pred, origin):
+    from .adsb import from_enu
+    K = pred.shape[0]
+    lat_p, lon_p = np.full(K, np.nan), np.full(K, np.nan)
+    good = np.isfinite(pred[:, 0])
+    if good.any():
+        a, b, _ = from_enu(np.column_stack([pred[good], np.zeros(int(good.sum()))]), origin)
+        lat_p[good], lon_p[good] = a, b
+    return lat_p, lon_p
+
+
+def _positive(v, name):
+    x = _nonneg(v, name)
+    if x <= 0.0:
+        raise ValueError(f"{name} must be > 0, got {v!r}")
+    return x
+
+
+def _nonneg(v, name):
+    arr = as_float_array(v, name)
+    if arr.ndim != 0 or not np.isfinite(arr) or arr < 0:
+        raise ValueError(f"{name} must be a finite scalar >= 0, got {v!r}")
+    return float(arr)
+
+
+def one_step_predictions(t_s, lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]:
+    """For each row ``k``, the horizontal position predicted from rows ``0..k-1`` only.
+
+    The chapter-18 recipe (module docstring, :func:`track_flight`) with the chapter's
+    constants; no per-flight settings. NaN where there is no prediction (bad rows, the first
+    two rows of a track).
+
+    Returns
+    -------
+    lat_pred_deg, lon_pred_deg : (K,) arrays (degrees).
+    """
+    res = track_flight(t_s, lat_deg, lon_deg)
+    return res.lat_pred_deg, res.lon_pred_deg
+
+
+def scored_rows(t_s, lat_deg, lon_deg, gap_s: float = REINIT_GAP_S) -> np.ndarray:
+    """The one rule that selects the rows on which every method is scored, (K,) bool.
+
+    Row ``k`` is scored if it is finite, its time is after that of the last accepted row, its
+    position is not that of the last accepted row (a held report is not a new fix), its step
+    from the last accepted row is at most ``gap_s`` seconds, and it is at least the third
+    accepted row of its track (a track restarts after a step longer than ``gap_s``). Accepted
+    rows are the finite rows with increasing time and a new position. The rule depends only
+    on the data, so every method is scored on the same rows.
+    """
+    t, lat, lon = _columns(t_s, lat_deg, lon_deg)
+    gap_s = _positive(gap_s, "gap_s")
+    with np.errstate(invalid="ignore"):
+        ok = (np.isfinite(t) & np.isfinite(lat) & np.isfinite(lon) & (np.abs(lat) <= 90.0)
+              & (np.abs(lon) <= 180.0))
+    out = np.zeros(t.size, dtype=bool)
+    last_t, last_ll, n = -math.inf, None, 0
+    for k in np.flatnonzero(ok).tolist():
+        if t[k] <= last_t or (last_ll is not None and lat[k] == last_ll[0] and lon[k] == last_ll[1]):
+            continue
+        if n and t[k] - last_t > gap_s:
+            n = 0
+        out[k] = n >= 2
+        n += 1
+        last_t, last_ll = t[k], (lat[k], lon[k])
+    return out
+
+
+def cv_predictions(t_s, lat_deg, lon_deg, q: float = 0.05, r: float = 25.0):
+    """Baseline: a constant-velocity Kalman filter on every usable row, one-step predictions.
+
+    ``kftrack.models.ConstantVelocity(ndim=2, sigma2=q)`` (``q`` the **discrete**
+    white-acceleration variance, m²/s⁴, the issue's convention), ``R = r I`` m², two-point start
+    (:func:`two_point_init`), every finite row with a time after the last one used is predicted
+    and used (held positions included, as a naive filter would).
+
+    Returns
+    -------
+    lat_pred_deg, lon_pred_deg : (K,) arrays (degrees; NaN where no prediction).
+    """
+    from .models import ConstantVelocity
+    t, lat, lon = _columns(t_s, lat_deg, lon_deg)
+    q, r = _nonneg(q, "q"), _positive(r, "r")
+    enu, origin, ok = _frame_of(t, lat, lon)
+    m = ConstantVelocity(ndim=2, sigma2=q)
+    R = r * np.eye(2)
+    pred = np.full((t.size, 2), np.nan)
+    usable, last = [], -math.inf
+    for k in np.flatnonzero(ok).tolist():
+        if t[k] > last:
+            usable.append(k)
+            last = t[k]
+    if len(usable) >= 2:
+        k0, k1 = usable[:2]
+        x, P = two_point_init(enu[k0], enu[k1], t[k1] - t[k0], r)
+        cache, tl = {}, t[k1]
+        ip = [0, 2]                     # H selects the positions: H x = x[ip], P H^T = P[:, ip]
+        eye = np.eye(4)
+        for k in usable[2:]:
+            dt = t[k] - tl
+            if dt not in cache:
+                cache[dt] = (m.F(dt), m.Q(dt))
+            F, Q = cache[dt]
+            # the equations of kftrack.kernels.kf_predict / kf_update (Joseph form), written out
+            # for one 4-state track: the kernels' array-namespace dispatch costs more than the algebra
+            x = F @ x
+            P = F @ P @ F.T + Q
+            P = 0.5 * (P + P.T)
+            pred[k] = x[ip]
+            PHt = P[:, ip]
+            S = PHt[ip] + R
+            S = 0.5 * (S + S.T)
+            Kg = np.linalg.solve(S, PHt.T).T
+            x = x + Kg @ (enu[k] - x[ip])
+            I_KH = eye.copy()
+            I_KH[:, ip] -= Kg
+            P = I_KH @ P @ I_KH.T + Kg @ R @ Kg.T
+            P = 0.5 * (P + P.T)
+            tl = t[k]
+    return _to_degrees(pred, origin)
+
+
+def innovation_loglik(flights, q=Q_MODES, tau=SOJOURN_S, lag_scale: float = LAG_SCALE,
+                      r_floor: float = R_FLOOR) -> float:
+    """Mean innovation log-likelihood per updated row of the recipe's filter over ``flights``.
+
+    ``flights`` are :class:`kftrack.adsb.Flight` records. The IMM's predictive density of each
+    row it updates with, :math:`\\log \\sum_j c_j N(z_k; H x^-_{k,j}, S_{k,j})`, summed over
+    flights and divided by the number of terms, with the gate off (no down-weighting).
+    """
+    tot, n = 0.0, 0
+    inf = {1: math.inf, 2: math.inf}
+    for fl in flights:
+        t, lat, lon = _columns(fl.t_s, fl.lat_deg, fl.lon_deg)
+        enu, origin, ok = _frame_of(t, lat, lon)
+        out = _run(t, lat, lon, enu, ok, tuple(q), tuple(tau), OMEGA_MODES, lag_scale, r_floor, inf, REINIT_GAP_S, True)
+        tot, n = tot + out[6], n + out[7]
+    return tot / max(n, 1)
+
+
+def fit_recipe(flights, x0=(Q_MODES[0], Q_MODES[1], LAG_SCALE, R_FLOOR), xatol: float = 1e-2):
+    """Maximum-likelihood ``(q_cv, q_manoeuvre, lag_scale, r_floor)`` over ``flights``.
+
+    Maximises :func:`innovation_loglik` (sojourn times fixed at :data:`SOJOURN_S`) over the
+    logarithms of the four constants with ``scipy.optimize.minimize`` (Nelder–Mead, ``xatol``
+    in log units). Returns the fitted tuple.
+    """
+    from scipy.optimize import minimize
+    flights = list(flights)
+
+    def nll(u):
+        q1, q2, c, r0 = np.exp(u)
+        return -innovation_loglik(flights, (q1, q2) + tuple(Q_MODES[2:]), SOJOURN_S, c, r0)
+
+    res = minimize(nll, np.log(np.asarray(x0, dtype=float)), method="Nelder-Mead",
+                   options={"xatol": xatol, "fatol": 1e-5, "maxiter": 300})
+    return tuple(float(v) for v in np.exp(res.x))

@@ -1,0 +1,397 @@
+r"""The two time-loop drivers of the whole-sequence filters: one set of equations, two engines.
+
+The filter equations live once, in :mod:`kftrack.kernels`, written against an array namespace
+(the array API standard). This module runs them over time:
+
+* :func:`run_sequence`, the **NumPy engine**: a Python loop over the steps, what the chapters
+  show and step through;
+* :func:`run_scan`, the **JAX engine**: the same step function under ``jax.lax.scan``,
+  compiled with ``jax.jit``, for speed, accelerators and gradients.
+
+Both call the *same* kernels with the *same* arguments; neither holds an equation of its own.
+The public filters (:func:`kftrack.kalman.kalman_filter`, :func:`kftrack.imm.imm_filter`,
+...) validate their inputs once, then pick the engine with :func:`use_jax`: any JAX array
+among the inputs selects the JAX engine, which returns JAX arrays; NumPy input keeps the
+NumPy engine.
+
+**One step** (both engines): at step ``k`` update with ``zs[k]`` unless the row is missing
+(then the prior is kept and ``nis``, ``loglik`` are NaN), then predict to step ``k + 1``.
+The kernels are :class:`Kernel` objects (a kernel function and its static, hashable options),
+called as ``predict(x, P, *pred_args, *pred_steps[k])`` and
+``update(x, P, z, *upd_args, *upd_steps[k])``: ``*_args`` are constant arrays, ``*_steps``
+arrays with a leading time axis (a transition matrix per step, for irregular sampling).
+
+**Shared covariances.** When the covariances do not depend on the run (no batch axes on
+``P0``, ``F``, ``Q``, ``H``, ``R`` and one missing-row pattern for all runs), the recursion of
+``P``, ``S`` and ``K`` does not depend on the data: the drivers then carry ``P`` without
+batch axes (``cov_batch = ()``), so the kernels compute it once per step and apply the gain to
+every run's mean; ``nis`` and ``loglik`` stay per run. The NumPy engine returns the
+covariances as read-only broadcast views of the one ``(T, n, n)`` sequence.
+
+**Precision.** Both engines compute in float64 unless ``float32`` is chosen explicitly. JAX
+computes in float32 unless ``jax_enable_x64`` is on; the JAX engine does not switch it on for
+you (that would change every other JAX computation in the session): with float64 requested and
+x64 off it raises a ``ValueError`` that says how to enable it, or to pass ``dtype="float32"``.
+"""
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from functools import lru_cache
+from typing import NamedTuple
+
+import numpy as np
+
+from ._validate import as_float_array, check_finite
+
+__all__ = ["Kernel", "PerDt", "check_dts", "use_jax", "is_tracer", "check_dtype", "to_engine",
+           "run_sequence", "run_closures", "run_scan", "run_imm_scan", "run_smoother_scan", "drive"]
+
+
+# --------------------------------------------------------------------------------------------
+# sampling intervals
+# --------------------------------------------------------------------------------------------
+class PerDt:
+    """Cache of ``fn(dt)`` for the few distinct sampling intervals of a run (``fn`` is called
+    once per distinct ``dt``; at most 65 entries are kept)."""
+
+    def __init__(self, fn: Callable):
+        self.fn, self.cache = fn, {}
+
+    def __call__(self, dt):
+        key = float(dt)
+        if key not in self.cache:
+            if len(self.cache) > 64:
+                self.cache.clear()
+            self.cache[key] = self.fn(key)
+        return self.cache[key]
+
+
+def check_dts(dt, T: int) -> np.ndarray:
+    """Sampling intervals ``(T,)``: ``dt[k]`` is the interval (s) after step ``k`` (the last one
+    is not used); a scalar is repeated. Finite and ``>= 0``, else a ``ValueError`` naming ``dt``."""
+    d = check_finite(as_float_array(dt, "dt"), "dt")
+    if d.ndim == 0:
+        d = np.full(T, float(d))
+    if d.shape != (T,) or np.any(d < 0):
+        raise ValueError(f"dt must be a scalar or have shape ({T},) (one interval after each step), "
+                         f"with dt >= 0; got {np.asarray(dt)!r}")
+    return d
+
+
+# --------------------------------------------------------------------------------------------
+# engine choice and precision
+# --------------------------------------------------------------------------------------------
+def _jax():
+    import jax  # imported only when JAX arrays are given
+
+    return jax
+
+
+def use_jax(*arrays) -> bool:
+    """True if any argument is a JAX array (or a JAX tracer, inside ``jit``/``grad``)."""
+    jax = sys.modules.get("jax")
+    if jax is None:  # nobody imported jax, so nothing can be a JAX array
+        return False
+    return any(isinstance(a, jax.Array) for a in arrays)
+
+
+def is_tracer(a) -> bool:
+    """True for an abstract JAX value (inside ``jit``, ``grad``, ``vmap``): shapes only, no values."""
+    jax = sys.modules.get("jax")
+    return jax is not None and isinstance(a, jax.core.Tracer)
+
+
+def check_dtype(dtype, jax_engine: bool):
+    """The floating dtype of a computation: ``None`` or ``"float64"`` (the default), or
+    ``"float32"`` (explicit, with its loss of about 9 decimal digits: relative round-off
+    ``2**-24`` instead of ``2**-53`` per operation). For the JAX engine float64 needs
+    ``jax_enable_x64``."""
+    try:
+        dt = np.dtype("float64" if dtype is None else dtype)
+    except TypeError:
+        raise TypeError(f"dtype must be None, 'float64' or 'float32', got {dtype!r}") from None
+    if dt not in (np.dtype("float64"), np.dtype("float32")):
+        raise ValueError(f"dtype must be None, 'float64' or 'float32', got {dtype!r}")
+    if jax_engine and dt == np.float64 and not _jax().config.jax_enable_x64:
+        raise ValueError(
+            "dtype: the JAX engine computes in float64 by default, but JAX has float64 disabled; run "
+            "jax.config.update('jax_enable_x64', True) before creating your arrays, or pass "
+            "dtype='float32' to accept float32 round-off (relative 6e-8 per operation instead of 1e-16)")
+    return dt
+
+
+def to_engine(a, jax_engine: bool, dtype):
+    """``a`` as an array of the engine (NumPy or JAX) in ``dtype`` (booleans stay boolean)."""
+    if jax_engine:
+        jnp = _jax().numpy
+        kind = a.dtype if hasattr(a, "dtype") else np.asarray(a).dtype
+        return jnp.asarray(a) if kind == bool else jnp.asarray(a, dtype=dtype)
+    a = np.asarray(a)
+    return a if a.dtype == bool or a.dtype == dtype else a.astype(dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# the step
+# --------------------------------------------------------------------------------------------
+class Kernel(NamedTuple):
+    """A kernel of :mod:`kftrack.kernels` with its static options bound, hashable so that the JAX
+    engine compiles once per kernel and options: ``Kernel(kf_update, (("form", "joseph"),))``."""
+
+    fn: Callable
+    static: tuple = ()
+
+    def __call__(self, *args):
+        return self.fn(*args, **dict(self.static))
+
+
+def _step(xp, predict, update, x, P, z, g, pred_args, pk, upd_args, uk, last):
+    """One step of every whole-sequence filter, on either engine: update with ``z`` where ``g``
+    (missing) is False, keep the prior where it is True, then predict unless ``last``.
+    Returns ``(x_post, P_post, nis, loglik, x_next, P_next)``."""
+    gx = g[..., None]
+    u = update(x, P, xp.where(gx, xp.zeros((), dtype=z.dtype), z), *upd_args, *uk)
+    nan = xp.asarray(float("nan"), dtype=x.dtype)
+    x_post = xp.where(gx, x, u.x)
+    P_post = xp.where(gx[..., None], P, u.P)
+    nis, ll = xp.where(g, nan, u.nis), xp.where(g, nan, u.loglik)
+    if last:
+        return x_post, P_post, nis, ll, x_post, P_post
+    x_next, P_next = predict(x_post, P_post, *pred_args, *pk)
+    return x_post, P_post, nis, ll, x_next, P_next
+
+
+def run_sequence(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, pred_args=(), pred_steps=(),
+                 upd_args=(), upd_steps=(), progress: bool = False):
+    """The NumPy engine: the time loop in Python, one broadcast kernel call per step for all runs.
+
+    Parameters
+    ----------
+    zs : (T, ..., m) measurements (missing rows may hold anything; they are not used).
+    gone : (T, ...) bool, True where the measurement of a run is missing; its batch axes must
+        broadcast to ``cov_batch`` (shape ``(T,)`` when all runs share the pattern).
+    x0, P0 : prior of step 0, broadcast to ``batch + (n,)`` and ``cov_batch + (n, n)``.
+    batch, cov_batch : batch shape of the means and of the covariances (``cov_batch`` is ``()``
+        when the covariance recursion is shared by all runs).
+    predict, update : :class:`Kernel` objects (see the module docstring).
+    pred_args, upd_args : constant array arguments of the kernels.
+    pred_steps, upd_steps : array arguments with a leading time axis ``T``; step ``k`` gets ``a[k]``.
+    progress : show a tqdm bar over the steps.
+
+    Returns
+    -------
+    kftrack.kalman.FilterResult
+    """
+    from .kalman import FilterResult  # the result type lives with the public filter
+
+    T, n = zs.shape[0], x0.shape[-1]
+    dtype = x0.dtype
+    x = np.broadcast_to(x0, batch + (n,)).copy()
+    P = np.broadcast_to(P0, cov_batch + (n, n)).copy()
+    out_xp = np.empty((T,) + batch + (n,), dtype)
+    out_Pp = np.empty((T,) + cov_batch + (n, n), dtype)
+    out_x, out_P = np.empty_like(out_xp), np.empty_like(out_Pp)
+    out_nis = np.full((T,) + batch, np.nan, dtype)
+    out_ll = np.full((T,) + batch, np.nan, dtype)
+    steps = range(T)
+    if progress:
+        from tqdm.auto import tqdm  # only when asked for
+
+        steps = tqdm(steps, desc="filter", unit="step")
+    xp = _np_namespace()
+    for k in steps:
+        out_xp[k], out_Pp[k] = x, P
+        pk, uk = tuple(a[k] for a in pred_steps), tuple(a[k] for a in upd_steps)
+        g = gone[k]
+        if g.all():  # nothing to update: predict only
+            out_x[k], out_P[k] = x, P
+            if k < T - 1:
+                x, P = predict(x, P, *pred_args, *pk)
+            continue
+        if not g.any():  # every run measured: no selection needed
+            u = update(x, P, zs[k], *upd_args, *uk)
+            x, P = u.x, u.P
+            out_nis[k], out_ll[k] = u.nis, u.loglik
+            out_x[k], out_P[k] = x, P
+            if k < T - 1:
+                x, P = predict(x, P, *pred_args, *pk)
+            continue
+        out_x[k], out_P[k], out_nis[k], out_ll[k], x, P = _step(xp, predict, update, x, P, zs[k], g, pred_args, pk,
+                                                                upd_args, uk, k == T - 1)
+    if cov_batch != batch:  # shared covariances: read-only views of the one sequence
+        out_Pp = np.broadcast_to(out_Pp.reshape((T,) + (1,) * (len(batch) - len(cov_batch)) + out_Pp.shape[1:]),
+                                 (T,) + batch + (n, n))
+        out_P = np.broadcast_to(out_P.reshape(out_Pp.shape[:1] + (1,) * (len(batch) - len(cov_batch))
+                                              + out_P.shape[1:]), (T,) + batch + (n, n))
+    return FilterResult(out_xp, out_Pp, out_x, out_P, out_nis, out_ll)
+
+
+def run_closures(zs, x0, P0, batch, row_missing, predict, update, progress: bool = False):
+    """The NumPy engine with the kernels bound in closures, ``predict(x, P)`` and
+    ``update(x, P, z)``, and batched covariances (the former ``kftrack.kernels.run_sequence``)."""
+    return run_sequence(zs, row_missing, x0, P0, tuple(batch), tuple(batch), predict, update, progress=progress)
+
+
+@lru_cache(maxsize=1)
+def _np_namespace():
+    from .kernels import _NUMPY  # numpy itself (NumPy >= 2), else array_api_compat's wrapper
+
+    return _NUMPY
+
+
+# --------------------------------------------------------------------------------------------
+# the JAX engine
+# --------------------------------------------------------------------------------------------
+def _scan_impl(zs, gone, x0, P0, pred_args, pred_steps, upd_args, upd_steps, *, batch, cov_batch, predict, update):
+    jax = _jax()
+    jnp = jax.numpy
+    n = x0.shape[-1]
+    x = jnp.broadcast_to(x0, batch + (n,))
+    P = jnp.broadcast_to(P0, cov_batch + (n, n))
+
+    def body(carry, inp):
+        x, P = carry
+        z, g, pk, uk = inp
+        x_post, P_post, nis, ll, x_next, P_next = _step(jnp, predict, update, x, P, z, g, pred_args, pk,
+                                                        upd_args, uk, False)
+        out = (x, P, jnp.broadcast_to(x_post, x.shape), jnp.broadcast_to(P_post, P.shape),
+               jnp.broadcast_to(nis, batch), jnp.broadcast_to(ll, batch))
+        return (jnp.broadcast_to(x_next, x.shape), jnp.broadcast_to(P_next, P.shape)), out
+
+    _, (xp_, Pp, xs, Ps, nis, ll) = jax.lax.scan(body, (x, P), (zs, gone, tuple(pred_steps), tuple(upd_steps)))
+    T = zs.shape[0]
+    if cov_batch != batch:
+        Pp = jnp.broadcast_to(Pp.reshape((T,) + (1,) * (len(batch) - len(cov_batch)) + Pp.shape[1:]),
+                              (T,) + batch + (n, n))
+        Ps = jnp.broadcast_to(Ps.reshape((T,) + (1,) * (len(batch) - len(cov_batch)) + Ps.shape[1:]),
+                              (T,) + batch + (n, n))
+    return xp_, Pp, xs, Ps, nis, ll
+
+
+@lru_cache(maxsize=1)
+def _scan_jit():
+    jax = _jax()
+    return jax.jit(_scan_impl, static_argnames=("batch", "cov_batch", "predict", "update"))
+
+
+def run_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, pred_args=(), pred_steps=(),
+             upd_args=(), upd_steps=(), progress: bool = False):
+    """The JAX engine: the step of :func:`run_sequence` under ``jax.lax.scan``, compiled with
+    ``jax.jit`` (once per kernel, options and shapes). Same arguments and result as
+    :func:`run_sequence`, as JAX arrays; ``progress`` is ignored (the loop runs compiled).
+    Every step runs the update on all runs and selects the prior where a row is missing."""
+    from .kalman import FilterResult
+
+    out = _scan_jit()(zs, gone, x0, P0, tuple(pred_args), tuple(pred_steps), tuple(upd_args), tuple(upd_steps),
+                      batch=tuple(batch), cov_batch=tuple(cov_batch), predict=predict, update=update)
+    return FilterResult(*out)
+
+
+def _imm_impl(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch, mixing_weights):
+    from .kernels import kf_predict, kf_update, logsumexp, moment_match
+
+    jax = _jax()
+    jnp = jax.numpy
+    r, nb = H.shape[0], len(batch)
+    per_mode = lambda a: jnp.reshape(a, (r,) + (1,) * nb + a.shape[1:])  # noqa: E731  mode axis first
+    H, R = per_mode(H), per_mode(R)
+    nan = jnp.asarray(jnp.nan, dtype=xs0.dtype)
+
+    def combine(log_mu, xs, Ps):
+        mu = jnp.exp(log_mu)
+        x, P = moment_match(mu, xs, Ps)
+        return mu, x, P
+
+    def body(carry, inp):
+        log_mu, xs, Ps = carry  # (..., r), (r, ..., n), (r, ..., n, n)
+        z, g, Pi, F, Q = inp
+        prior = combine(log_mu, xs, Ps)
+        u = kf_update(xs, Ps, jnp.where(g[..., None], jnp.zeros((), z.dtype), z)[None], H, R)  # every mode at once
+        loglik = jnp.moveaxis(jnp.broadcast_to(u.loglik, (r,) + batch), 0, -1)
+        joint = log_mu + loglik
+        gm = g[..., None]
+        log_mu = jnp.where(gm, log_mu, joint - logsumexp(joint, axis=-1, keepdims=True))
+        xs = jnp.where(gm[None], xs, u.x)
+        Ps = jnp.where(gm[None, ..., None], Ps, u.P)
+        post = combine(log_mu, xs, Ps)
+        w, log_cbar = mixing_weights(log_mu, Pi)  # (..., r_i, r_j)
+        x0, P0 = moment_match(jnp.moveaxis(w, -1, 0), xs, Ps)  # (r_j, ..., n): the mixed start of each mode
+        xs_n, Ps_n = kf_predict(x0, P0, per_mode(F), per_mode(Q))
+        out = prior + post + (jnp.where(gm, nan, loglik), xs, Ps)
+        return (jnp.broadcast_to(log_cbar, log_mu.shape), jnp.broadcast_to(xs_n, xs.shape),
+                jnp.broadcast_to(Ps_n, Ps.shape)), out
+
+    _, out = jax.lax.scan(body, (log_mu0, xs0, Ps0), (zs, gone, Pis, Fs, Qs))
+    mu_p, x_p, P_p, mu, x, P, ll, xs, Ps = out
+    xs = tuple(xs[:, i] for i in range(r))
+    Ps = tuple(Ps[:, i] for i in range(r))
+    return x_p, P_p, mu_p, x, P, mu, ll, xs, Ps
+
+
+@lru_cache(maxsize=1)
+def _imm_jit():
+    return _jax().jit(_imm_impl, static_argnames=("batch", "mixing_weights"))
+
+
+def run_imm_scan(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch: tuple, mixing_weights):
+    """The JAX engine of the IMM (and GPB1) with linear Kalman modes that share one state: the cycle
+    of :meth:`kftrack.imm.IMM.update` and :meth:`kftrack.imm.IMM.predict` under
+    ``jax.lax.scan``, with the mode axis as a batch axis of the kernels (one
+    :func:`kftrack.kernels.kf_update`, one :func:`kftrack.kernels.moment_match` and one
+    :func:`kftrack.kernels.kf_predict` call per step for all modes and runs).
+
+    Parameters
+    ----------
+    zs : (T, ..., m) measurements; ``gone`` (T, ...) missing rows.
+    log_mu0 : (..., r) log mode probabilities; ``xs0``, ``Ps0`` (r, ..., n), (r, ..., n, n).
+    Pis : (T, r, r) Markov matrix of the step after ``k``; ``Fs``, ``Qs`` (T, r, n, n).
+    H, R : (r, m, n), (r, m, m) per mode.
+    batch : the batch shape; ``mixing_weights`` the estimator's ``(log_mu, Pi) -> (w, log_cbar)``.
+
+    Returns
+    -------
+    tuple
+        ``(x_prior, P_prior, mu_prior, x, P, mu, loglik, xs, Ps)``, time first; ``xs``, ``Ps`` the
+        mode-matched posteriors, tuples of r arrays ``(T, ..., n)``, ``(T, ..., n, n)``.
+    """
+    return _imm_jit()(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, batch=tuple(batch),
+                      mixing_weights=mixing_weights)
+
+
+def _smooth_impl(x, P, x_prior, P_prior, F, *, per_step):
+    from .kernels import rts_step
+
+    jax = _jax()
+    jnp = jax.numpy
+    T = x.shape[0]
+    Fseq = F[:-1] if per_step else jnp.broadcast_to(F, (T - 1,) + F.shape)
+
+    def body(carry, inp):
+        xs_next, Ps_next = carry
+        xk, Pk, xpn, Ppn, Fk = inp
+        xs, Ps, G = rts_step(xk, Pk, xpn, Ppn, xs_next, Ps_next, Fk)
+        xs, Ps = jnp.broadcast_to(xs, xs_next.shape), jnp.broadcast_to(Ps, Ps_next.shape)
+        return (xs, Ps), (xs, Ps, jnp.broadcast_to(G, Ps_next.shape))
+
+    _, (xs, Ps, G) = jax.lax.scan(body, (x[-1], P[-1]), (x[:-1], P[:-1], x_prior[1:], P_prior[1:], Fseq),
+                                  reverse=True)
+    return jnp.concatenate([xs, x[-1:]]), jnp.concatenate([Ps, P[-1:]]), G
+
+
+@lru_cache(maxsize=1)
+def _smooth_jit():
+    return _jax().jit(_smooth_impl, static_argnames=("per_step",))
+
+
+def run_smoother_scan(x, P, x_prior, P_prior, F, per_step: bool):
+    """The JAX engine of the Rauch–Tung–Striebel smoother: :func:`kftrack.kernels.rts_step`
+    under a reversed ``jax.lax.scan``. ``x``, ``P``, ``x_prior``, ``P_prior`` as in
+    :class:`kftrack.kalman.FilterResult`; ``F`` one transition ``(..., n, n)`` or, with
+    ``per_step``, a stack ``(T, ..., n, n)``. Returns ``(x_s, P_s, G)``."""
+    return _smooth_jit()(x, P, x_prior, P_prior, F, per_step=bool(per_step))
+
+
+def drive(jax_engine: bool, *args, **kwargs):
+    """:func:`run_scan` if ``jax_engine`` else :func:`run_sequence`, with the same arguments."""
+    return (run_scan if jax_engine else run_sequence)(*args, **kwargs)
+

@@ -1,0 +1,178 @@
+"""kftrack.adsb: the committed ADS-B files equal a fresh extraction from the traffic 2.13 wheel;
+the loader skips and counts bad rows by reason; the ENU conversion round-trips and measures
+distances right; bad arguments name themselves."""
+from __future__ import annotations
+
+import gzip
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kftrack import adsb, datasets
+
+ROOT = Path(__file__).resolve().parents[1]
+EXTRACT = ROOT / "data" / "adsb" / "extract.py"
+WHEEL = "traffic-2.13-py3-none-any.whl"
+
+
+@pytest.fixture(scope="session")
+def traffic_wheel(tmp_path_factory) -> Path:
+    """traffic 2.13 from PyPI (``pip download``), once per session; a failure fails the test."""
+    folder = tmp_path_factory.mktemp("traffic-wheel")
+    cmd = [sys.executable, "-m", "pip", "download", "traffic==2.13", "--no-deps", "--only-binary", ":all:",
+           "--disable-pip-version-check", "-q", "-d", str(folder)]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    wheel = folder / WHEEL
+    if res.returncode != 0 or not wheel.is_file():
+        pytest.fail(f"cannot check data/adsb against its source: '{' '.join(cmd)}' failed "
+                    f"(exit {res.returncode}); PyPI must be reachable.\n{res.stderr}", pytrace=False)
+    return wheel
+
+
+def _committed() -> list[str]:
+    return sorted(p.relative_to(ROOT / "data" / "adsb").as_posix()
+                  for p in (ROOT / "data" / "adsb").glob("*/*.csv.gz"))
+
+
+def test_committed_files_equal_a_fresh_extraction(traffic_wheel, tmp_path):
+    out = tmp_path / "adsb"
+    # -B: no __pycache__ next to the script (data/ ships as package data)
+    res = subprocess.run([sys.executable, "-B", str(EXTRACT), "--wheel", str(traffic_wheel), "--out", str(out)],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    fresh = sorted(p.relative_to(out).as_posix() for p in out.glob("*/*.csv.gz"))
+    assert fresh == _committed()
+    expected = {f"{n}.csv.gz" for n in adsb.CHAPTER_FLIGHTS + adsb.NOISY_FLIGHTS + adsb.UNSEEN_FLIGHTS}
+    assert set(fresh) == expected and len(expected) == 38
+    for rel in fresh:
+        new, old = (out / rel).read_bytes(), (ROOT / "data" / "adsb" / rel).read_bytes()
+        # the text must be identical; the compressed bytes are identical with the same zlib
+        assert gzip.decompress(new) == gzip.decompress(old), rel
+        # deterministic gzip header: magic, deflate, no flags (no file name), mtime 0
+        assert old[:8] == b"\x1f\x8b\x08\x00\x00\x00\x00\x00", rel
+    assert not (EXTRACT.parent / "__pycache__").exists()
+
+
+def test_every_flight_loads_and_keeps_every_good_record():
+    for name in adsb.CHAPTER_FLIGHTS + adsb.NOISY_FLIGHTS + adsb.UNSEEN_FLIGHTS:
+        f = adsb.load_flight(name)
+        text = gzip.decompress(datasets.data_path(f"adsb/{name}.csv.gz").read_bytes()).decode()
+        n_rows = sum(1 for line in text.splitlines() if line and not line.startswith("#")) - 1
+        assert len(f.t_s) + sum(f.skipped.values()) == n_rows, name
+        assert all(len(getattr(f, c)) == len(f.t_s) for c in adsb.COLUMNS)
+        assert np.all(np.isfinite(f.t_s)) and np.all(np.abs(f.lat_deg) <= 90) and np.all(np.abs(f.lon_deg) <= 180)
+    # the one sample with missing positions (11 records without latitude/longitude)
+    assert adsb.load_flight("noisy/noisy_spoofing").skipped == {"non-finite latitude or longitude": 11}
+
+
+def _write(folder: Path, name: str, lines: list) -> None:
+    path = folder / "adsb" / f"{name}.csv.gz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    raw = [line if isinstance(line, bytes) else line.encode() for line in lines]
+    path.write_bytes(gzip.compress(b"\n".join(raw) + b"\n"))
+
+
+def test_loader_skips_and_counts_bad_rows_by_reason(tmp_path, monkeypatch):
+    monkeypatch.setenv("KFTRACK_DATA", str(tmp_path))
+    good = "100.000,45.0,7.0,1000.0,100.0,90.0,0.0"
+    _write(tmp_path, "calibration/toulouse", [
+        "# a comment", ",".join(adsb.COLUMNS), good,
+        "101.000,45.001,7.001",                           # truncated
+        "102.000,45.002,ERR,1000.0,100.0,90.0,0.0",       # non-numeric
+        "103.000,nan,7.003,1000.0,100.0,90.0,0.0",        # NaN latitude
+        "104.000,95.0,7.004,1000.0,100.0,90.0,0.0",       # latitude out of range
+        "105.000,45.005,181.0,1000.0,100.0,90.0,0.0",     # longitude out of range
+        "nan,45.006,7.006,1000.0,100.0,90.0,0.0",         # no time
+        "106.000,45.008,7.008,inf,100.0,90.0,0.0",        # infinite altitude (to_enu would refuse it)
+        "107.000,45.009,7.009,1000.0,100.0,-inf,0.0",     # infinite track
+        b"108.000,45.01\xff,7.01,1000.0,100.0,90.0,0.0",  # non-UTF-8 byte: non-numeric, no UnicodeError
+        "1e400,45.011,7.011,1000.0,100.0,90.0,0.0",       # time overflows to inf
+        good,                                             # exact duplicate, kept
+        "99.000,45.007,7.007,nan,nan,nan,nan",            # time going back, NaN fields: kept
+        "",                                               # blank line: ignored
+    ])
+    f = adsb.load_flight("calibration/toulouse")
+    assert f.skipped == {"wrong number of fields (expected 7)": 1, "non-numeric field": 2,
+                         "non-finite latitude or longitude": 1, "latitude outside [-90, 90]": 1,
+                         "longitude outside [-180, 180]": 1, "non-finite time": 2,
+                         "infinite altitude, speed, track or vertical rate": 2}
+    np.testing.assert_array_equal(f.t_s, [100.0, 100.0, 99.0])
+    np.testing.assert_array_equal(f.lat_deg, [45.0, 45.0, 45.007])
+    assert np.isnan(f.alt_m[2]) and f.name == "calibration/toulouse"
+    enu, _ = adsb.to_enu(f.lat_deg, f.lon_deg)       # every kept row is accepted downstream
+    assert enu.shape == (3, 3) and np.all(np.isfinite(enu))
+
+
+def test_loader_file_level_errors(tmp_path, monkeypatch):
+    with pytest.raises(ValueError, match="name must be one of.*calibration/toulouse"):
+        adsb.load_flight("calibration/atlantis")
+    with pytest.raises(ValueError, match="name"):
+        adsb.load_flight(3)
+    monkeypatch.setenv("KFTRACK_DATA", str(tmp_path))
+    _write(tmp_path, "calibration/munich", ["t,lat,lon", "1,2,3"])
+    with pytest.raises(ValueError, match="header"):
+        adsb.load_flight("calibration/munich")
+
+
+def test_enu_round_trip():
+    rng = np.random.default_rng(2014)
+    worst = 0.0
+    for lat0, lon0 in [(-89.5, -179.9), (-30.0, 20.0), (0.0, 0.0), (45.0, 7.0), (89.5, 120.0)]:
+        enu = np.column_stack([rng.uniform(-3e5, 3e5, 500), rng.uniform(-3e5, 3e5, 500),
+                               rng.uniform(-500.0, 15000.0, 500)])
+        lat, lon, alt = adsb.from_enu(enu, (lat0, lon0, 100.0))
+        back, origin = adsb.to_enu(lat, lon, alt, origin=(lat0, lon0, 100.0))
+        assert origin == (lat0, lon0, 100.0)
+        worst = max(worst, float(np.max(np.abs(back - enu))))
+    # round-off bound: ECEF coordinates up to 6.4e6 m, some tens of operations each
+    # (rotation, the closed-form inverse of You 2000): 50 * 6.4e6 m * eps = 7.1e-8 m.
+    assert worst <= 50 * 6.4e6 * np.finfo(float).eps
+
+
+def test_enu_default_origin_and_nan_rows():
+    lat = np.array([np.nan, 45.0, 45.001])
+    lon = np.array([7.0, 7.0, 7.0])
+    enu, origin = adsb.to_enu(lat, lon)
+    assert origin == (45.0, 7.0, 0.0)       # the first finite fix, height 0 without alt_m
+    assert np.all(np.isnan(enu[0])) and np.array_equal(enu[1], np.zeros(3))
+    enu, origin = adsb.to_enu(lat, lon, alt_m=[100.0, np.nan, 300.0])
+    assert origin == (45.001, 7.0, 300.0)
+
+
+def test_enu_north_distance_equals_the_meridian_arc():
+    # 1e-3 degree north of (45 N, 0 E) on the WGS 84 ellipsoid. The meridian arc is
+    # s = M(phi_m) dphi with M = a (1 - e2) / (1 - e2 sin^2 phi)^(3/2) at the mid latitude
+    # (midpoint rule: error ~ M'' dphi^3 / 24, below 1e-12 m). The tangent-plane north
+    # coordinate is the chord's projection, shorter than the arc by about s^3 / (6 R^2) = 6e-9 m.
+    a, f = 6378137.0, 1 / 298.257223563
+    e2 = f * (2 - f)
+    dphi = np.radians(1e-3)
+    phi_m = np.radians(45.0) + dphi / 2
+    s = a * (1 - e2) / (1 - e2 * np.sin(phi_m) ** 2) ** 1.5 * dphi
+    enu, _ = adsb.to_enu([45.0, 45.001], [0.0, 0.0], [0.0, 0.0])
+    assert abs(s - 111.13) < 0.01                      # the textbook 111.1 m
+    assert abs(enu[1, 1] - s) < 1e-7                   # 6e-9 m chord effect + round-off, with margin
+    assert abs(enu[1, 0]) < 1e-9                       # due north: no east component (round-off)
+    assert -1.5e-3 < enu[1, 2] < -0.5e-3               # drops below the tangent plane by s^2 / (2 R) = 1e-3 m
+
+
+@pytest.mark.parametrize("call, arg", [
+    (lambda: adsb.to_enu([45.0], [7.0, 8.0]), "lon_deg"),
+    (lambda: adsb.to_enu([[45.0]], [[7.0]]), "lat_deg"),
+    (lambda: adsb.to_enu([95.0], [7.0]), "lat_deg"),
+    (lambda: adsb.to_enu([45.0], [190.0]), "lon_deg"),
+    (lambda: adsb.to_enu([45.0], [7.0], [1.0, 2.0]), "alt_m"),
+    (lambda: adsb.to_enu([45.0], [7.0], origin=(45.0, 7.0)), "origin"),
+    (lambda: adsb.to_enu([45.0], [7.0], origin=(91.0, 7.0, 0.0)), "origin"),
+    (lambda: adsb.to_enu([np.nan], [7.0]), "origin"),
+    (lambda: adsb.to_enu(None, [7.0]), "lat_deg"),
+    (lambda: adsb.from_enu(np.zeros((2, 2)), (45.0, 7.0, 0.0)), "enu"),
+    (lambda: adsb.from_enu(np.zeros((2, 3)), None), "origin"),
+    (lambda: adsb.from_enu(np.zeros((2, 3)), (45.0, np.nan, 0.0)), "origin"),
+])
+def test_argument_errors_name_the_argument(call, arg):
+    with pytest.raises((ValueError, TypeError), match=arg):
+        call()

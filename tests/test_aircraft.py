@@ -1,0 +1,307 @@
+"""Tests of kftrack.aircraft: the chapter-18 recipe, its scoring rule and the baselines."""
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+
+import numpy as np
+import pytest
+
+from kftrack import aircraft as A
+from kftrack.adsb import CHAPTER_FLIGHTS, NOISY_FLIGHTS, UNSEEN_FLIGHTS, load_flight, to_enu
+from kftrack.datasets import data_path
+
+EPS = np.finfo(float).eps
+
+
+def _baseline_module():
+    spec = importlib.util.spec_from_file_location("adsb_baseline", data_path("adsb/baseline.py"))
+    mod = importlib.util.module_from_spec(spec)
+    old, sys.dont_write_bytecode = sys.dont_write_bytecode, True   # no __pycache__ inside data/
+    try:
+        spec.loader.exec_module(mod)
+    finally:
+        sys.dont_write_bytecode = old
+    return mod
+
+
+@pytest.fixture(scope="module")
+def baseline():
+    return _baseline_module()
+
+
+@pytest.fixture(scope="module")
+def flights():
+    return {n: load_flight(n) for n in CHAPTER_FLIGHTS + NOISY_FLIGHTS + UNSEEN_FLIGHTS}
+
+
+# ---------------------------------------------------------------- causality, robustness
+@pytest.mark.parametrize("name", ["calibration/toulouse", "gliders/cevennes", "featured/belevingsvlucht",
+                                  "noisy/noisy_spoofing"])
+def test_causal_by_truncation(flights, name):
+    fl = flights[name]
+    full = A.track_flight(fl.t_s, fl.lat_deg, fl.lon_deg)
+    rng = np.random.default_rng(18)
+    for k in rng.integers(3, fl.t_s.size, size=2).tolist():
+        cut = A.track_flight(fl.t_s[:k], fl.lat_deg[:k], fl.lon_deg[:k])
+        # same operations on the same numbers: identical, NaN included
+        np.testing.assert_array_equal(cut.enu_pred, full.enu_pred[:k])
+        np.testing.assert_array_equal(cut.reason, full.reason[:k])
+
+
+def _bad_flight():
+    t = np.arange(40, dtype=float) * 5.0
+    lat = 43.6 + 1e-4 * np.arange(40) * 5.0 / 11.1      # ~ 10 m/s north... in degrees per row
+    lon = np.full(40, 1.37) + 1e-4 * np.arange(40)
+    lat, lon = lat.copy(), lon.copy()
+    lat[5] = np.nan                                   # non-finite
+    lon[8] = np.inf                                   # non-finite
+    t[12] = t[11]                                     # non-increasing time
+    t[20] = t[19] - 30.0                              # backwards
+    lat[25], lon[25] = lat[24], lon[24]               # repeated (held)
+    lat[30] += 0.09                                   # a 10-km jump
+    return t, lat, lon
+
+
+def test_counts_on_a_hand_made_bad_flight():
+    t, lat, lon = _bad_flight()
+    res = A.track_flight(t, lat, lon)
+    c = res.counts
+    assert c["non_finite"] == 2
+    assert c["non_increasing_time"] == 2
+    assert c["repeated_position"] == 1
+    # 10 km in 5 s is faster than any aircraft here: skipped as implausible (or gated)
+    assert res.reason[30] in ("implausible_speed", "gated", "reinit_lost")
+    assert sum(c.values()) == t.size
+    assert set(res.reason.tolist()) <= set(A.REASONS)
+
+
+@pytest.mark.parametrize("name", NOISY_FLIGHTS)
+def test_counts_on_noisy_samples(flights, name):
+    fl = flights[name]
+    res = A.track_flight(fl.t_s, fl.lat_deg, fl.lon_deg)
+    assert sum(res.counts.values()) == fl.t_s.size
+    held = int(np.sum((fl.lat_deg[1:] == fl.lat_deg[:-1]) & (fl.lon_deg[1:] == fl.lon_deg[:-1])
+                      & (fl.t_s[1:] > fl.t_s[:-1])))
+    # every held row after an accepted row is counted as repeated (runs: all but the first row)
+    assert res.counts["repeated_position"] >= held - res.counts["non_increasing_time"]
+    pred = res.enu_pred[np.isfinite(res.enu_pred[:, 0])]
+    assert np.all(np.isfinite(pred))
+    assert np.nanmax(res.speed_mps) < A.MAX_SPEED_MPS
+
+
+@pytest.mark.parametrize("case", ["nan", "inf", "dup", "back", "jump", "empty", "one", "two_same"])
+def test_never_raises_on_garbage(case):
+    t, lat, lon = np.arange(20.0) * 5, 45.0 + 1e-4 * np.arange(20.0), np.full(20, 7.0)
+    if case == "nan":
+        lat = np.full(20, np.nan)
+    elif case == "inf":
+        t = np.full(20, np.inf)
+    elif case == "dup":
+        t = np.zeros(20)
+    elif case == "back":
+        t = t[::-1].copy()
+    elif case == "jump":
+        lat = lat.copy()
+        lat[10:] += 0.09
+    elif case == "empty":
+        t, lat, lon = t[:0], lat[:0], lon[:0]
+    elif case == "one":
+        t, lat, lon = t[:1], lat[:1], lon[:1]
+    elif case == "two_same":
+        t, lat, lon = t[:2], np.full(2, 45.0), np.full(2, 7.0)
+    res = A.track_flight(t, lat, lon)
+    assert res.lat_pred_deg.shape == (t.size,)
+    assert sum(res.counts.values()) == t.size
+    lp, _ = A.one_step_predictions(t, lat, lon)
+    assert lp.shape == (t.size,)
+    A.scored_rows(t, lat, lon)
+    A.cv_predictions(t, lat, lon)
+
+
+def test_argument_errors_name_the_argument():
+    t = np.arange(5.0)
+    with pytest.raises(ValueError, match="lat_deg"):
+        A.track_flight(t, np.zeros((5, 2)), np.zeros(5))
+    with pytest.raises(ValueError, match="same length"):
+        A.track_flight(t, np.zeros(4), np.zeros(5))
+    with pytest.raises(TypeError, match="t_s"):
+        A.track_flight(object(), np.zeros(5), np.zeros(5))
+    with pytest.raises(ValueError, match="false_rejection"):
+        A.track_flight(t, np.zeros(5), np.zeros(5), false_rejection=1.5)
+    with pytest.raises(ValueError, match="q"):
+        A.track_flight(t, np.zeros(5), np.zeros(5), q=(-1.0, 2.0))
+    with pytest.raises(ValueError, match="omega"):
+        A.track_flight(t, np.zeros(5), np.zeros(5), q=(1.0, 2.0))
+    with pytest.raises(ValueError, match="gap_s"):
+        A.scored_rows(t, np.zeros(5), np.zeros(5), gap_s=0.0)
+    with pytest.raises(ValueError, match="r"):
+        A.cv_predictions(t, np.zeros(5), np.zeros(5), r=0.0)
+
+
+def _line(K, dt=1.0, v=(80.0, 60.0)):
+    """A straight flight at 100 m/s, ``dt`` s steps, as (t, lat, lon) (both coordinates move)."""
+    from kftrack.adsb import from_enu
+    t = np.arange(K) * dt
+    enu = np.column_stack([v[0] * t, v[1] * t, np.zeros(K)])
+    lat, lon, _ = from_enu(enu, (52.0, 5.0, 0.0))
+    return t, np.asarray(lat, float), np.asarray(lon, float)
+
+
+def test_forward_spike_and_its_held_copies_are_skipped():
+    # belevingsvlucht's pattern: a row 3-5 x speed x dt ahead of the track, held for two rows,
+    # then the track goes on along its old line. The spike and its copies must leave the filter
+    # exactly as if they were not in the file.
+    t, lat, lon = _line(80)
+    ls, lo = lat.copy(), lon.copy()
+    ls[50:53], lo[50:53] = lat[54], lon[54]         # 4 s ahead (400 m in 1 s + 100 m/s)
+    res = A.track_flight(t, ls, lo)
+    assert res.reason[50] == "implausible_speed"
+    assert list(res.reason[51:53]) == ["repeated_position"] * 2
+    assert res.reason[53] == "used"
+    keep = np.r_[0:50, 53:80]
+    ref = A.track_flight(t[keep], lat[keep], lon[keep])
+    np.testing.assert_array_equal(res.enu_pred[53:], ref.enu_pred[50:])
+
+
+def test_a_relocation_restarts_the_track():
+    # a jump that the following rows confirm (the aircraft is there): after LOST_AFTER rejected
+    # rows the track restarts from the last two and predicts the new line
+    t, lat, lon = _line(80, dt=5.0)
+    lat = lat.copy()
+    lat[40:] += 0.1                                   # 11 km north at row 40: 2.2 km/s
+    res = A.track_flight(t, lat, lon)
+    assert res.reason[40] == "implausible_speed"
+    k = int(np.flatnonzero(res.reason == "reinit_lost")[0])
+    assert 40 < k <= 40 + A.LOST_AFTER + 6
+    err = np.hypot(*(res.enu_pred[k + 8:] - res.enu[k + 8:]).T)
+    # a noise-free line is predicted up to the turn modes' bias: a known-rate turn's prediction
+    # falls short along track by v dt (1 - sin(w dt)/(w dt)) <= v dt (w dt)^2 / 6, here
+    # 100 m/s x 5 s x (0.026 rad/s x 5 s)^2 / 6 = 1.4 m with all weight on the turns; the
+    # mixture keeps a fraction of it once the restart transient (a few rows) has passed
+    w_dt = math.radians(A.TURN_DEG_S) * 5.0
+    bias = 100.0 * 5.0 * w_dt ** 2 / 6.0
+    assert np.all(err < 0.5 * bias)
+
+
+def test_gate_false_rejection_rate_single_mode():
+    # Data from the gate's own model: CV truth with white acceleration q (m^2/s^3), positions
+    # with white N(0, r0 I) errors, no report lag (lag_scale = 0), one constant-velocity mode
+    # (the IMM is then one CV filter). The fraction of NIS values above the gate must match
+    # false_rejection within the two-sided binomial 99.9 % interval. The first rows of each
+    # track are left out (two-point start with a larger r than the data's).
+    from scipy.stats import binom
+
+    from kftrack.adsb import from_enu
+    rng = np.random.default_rng(1815)
+    q, r0, dt, K, runs, skip, alpha = 1.0, 400.0, 5.0, 150, 100, 20, 0.01
+    F = np.eye(4)
+    F[0, 1] = F[2, 3] = dt
+    Qb = q * np.array([[dt ** 3 / 3, dt ** 2 / 2], [dt ** 2 / 2, dt]])
+    Lq = np.linalg.cholesky(Qb)
+    n_rej = n = 0
+    for _ in range(runs):
+        x = np.array([0.0, 80.0, 0.0, 60.0])
+        X = np.empty((K, 4))
+        for k in range(K):
+            X[k] = x
+            w = np.concatenate([Lq @ rng.standard_normal(2), Lq @ rng.standard_normal(2)])
+            x = F @ x + w[[0, 1, 2, 3]]
+        z = X[:, [0, 2]] + math.sqrt(r0) * rng.standard_normal((K, 2))
+        lat, lon, _ = from_enu(np.column_stack([z, np.zeros(K)]), (45.0, 7.0, 0.0))
+        res = A.track_flight(np.arange(K) * dt, lat, lon, q=(q,), tau=(60.0,), omega=(0.0,),
+                             lag_scale=0.0, r_floor=r0,
+                             false_rejection=alpha, use_segments=False)
+        nis = res.nis[skip:]
+        assert np.all(np.isfinite(nis))
+        n_rej += int(np.sum(nis > A._gamma(alpha)[2]))
+        n += nis.size
+    lo, hi = binom.ppf(0.0005, n, alpha), binom.isf(0.0005, n, alpha)
+    assert lo <= n_rej <= hi, f"{n_rej} of {n} rejected, 99.9 % interval [{lo:.0f}, {hi:.0f}]"
+
+
+def test_reinit_gap_matches_its_formula():
+    # q T^3 / 3 = std^2 at the gap
+    T = A.reinit_gap(2.0, 500.0)
+    assert abs(2.0 * T ** 3 / 3.0 - 500.0 ** 2) <= 1e-9 * 500.0 ** 2
+
+
+# ---------------------------------------------------------------- the baseline cache
+def _enu_error_bound(K: int, scale: float) -> float:
+    # Round-off of two runs of the same filter on different BLAS kernels: each step adds
+    # ~ n^2 eps |x| (n = 4 states, 3 modes) and the filter is contractive (steady gain), so the
+    # difference stays below ~ 64 eps |x| times the number of steps it can remember; we allow
+    # the whole flight (K steps) as the memory: 64 * K * eps * scale (m), plus the geodetic
+    # round trip (1e-8 m, tests/test_adsb.py).
+    return 64.0 * K * EPS * scale + 1e-7
+
+
+@pytest.mark.parametrize("name", CHAPTER_FLIGHTS)
+def test_baseline_cache_equals_a_fresh_filterpy_run(baseline, flights, name):
+    fl = flights[name]
+    t_c, la_c, lo_c = baseline.read_cache(name)
+    np.testing.assert_array_equal(t_c, fl.t_s)
+    la, lo = baseline.filterpy_baseline(fl.t_s, fl.lat_deg, fl.lon_deg)
+    np.testing.assert_array_equal(np.isnan(la_c), np.isnan(la))
+    ok = np.isfinite(la)
+    origin = (float(fl.lat_deg[0]), float(fl.lon_deg[0]), 0.0)
+    a = to_enu(la[ok], lo[ok], origin=origin)[0]
+    b = to_enu(la_c[ok], lo_c[ok], origin=origin)[0]
+    scale = float(np.max(np.abs(a)))
+    assert np.max(np.abs(a - b)) <= _enu_error_bound(fl.t_s.size, scale)
+
+
+@pytest.mark.parametrize("name", UNSEEN_FLIGHTS)
+def test_baseline_cache_unseen_first_rows(baseline, flights, name):
+    fl = flights[name]
+    n = 300
+    t_c, la_c, lo_c = baseline.read_cache(name)
+    la, lo = baseline.filterpy_baseline(fl.t_s[:n], fl.lat_deg[:n], fl.lon_deg[:n])   # causal: same rows
+    ok = np.isfinite(la)
+    np.testing.assert_array_equal(np.isnan(la_c[:n]), ~ok)
+    origin = (float(fl.lat_deg[0]), float(fl.lon_deg[0]), 0.0)
+    a = to_enu(la[ok], lo[ok], origin=origin)[0]
+    b = to_enu(la_c[:n][ok], lo_c[:n][ok], origin=origin)[0]
+    assert np.max(np.abs(a - b)) <= _enu_error_bound(n, float(np.max(np.abs(a))))
+
+
+# ---------------------------------------------------------------- the figures (issue 15)
+def _rmse(p, z, m):
+    return float(np.sqrt(np.mean(np.sum((p[m] - z[m]) ** 2, axis=-1))))
+
+
+def figures(baseline, fl):
+    res = A.track_flight(fl.t_s, fl.lat_deg, fl.lon_deg)
+    m = A.scored_rows(fl.t_s, fl.lat_deg, fl.lon_deg)
+    _, la, lo = baseline.read_cache(fl.name)
+    zf = to_enu(la, lo, origin=res.origin)[0][:, :2]
+    zc = to_enu(*A.cv_predictions(fl.t_s, fl.lat_deg, fl.lon_deg), origin=res.origin)[0][:, :2]
+    finite = bool(np.all(np.isfinite(res.enu_pred[m])) and np.all(np.isfinite(zf[m])) and np.all(np.isfinite(zc[m])))
+    e, ef, ec = _rmse(res.enu_pred, res.enu, m), _rmse(zf, res.enu, m), _rmse(zc, res.enu, m)
+    return e, ef, ec, finite, float(np.nanmax(res.speed_mps))
+
+
+# Flights on which the recipe misses the issue's figures today (measured, reported to the lead):
+# belevingsvlucht 0.88 x filterpy with the turn modes (target 0.85; its forward spikes alone put
+# a causal predictor no lower than 0.59, and with them at filterpy's error the rest must reach
+# 0.76 x filterpy, it is 0.81 today; below CV). With the turn modes brussels_ils (0.84) and
+# london_gatwick (0.82) now pass. strict=True: passing would fail the test, so this list has to
+# be kept true.
+_MISSES = {"featured/belevingsvlucht"}
+
+
+@pytest.mark.parametrize("name", [
+    pytest.param(n, marks=pytest.mark.xfail(strict=True, reason="recipe misses the figure")) if n in _MISSES
+    else n for n in CHAPTER_FLIGHTS + UNSEEN_FLIGHTS])
+def test_figures(baseline, flights, name):
+    e, ef, ec, finite, vmax = figures(baseline, flights[name])
+    assert finite and vmax < A.MAX_SPEED_MPS
+    assert e <= 0.85 * ef, f"recipe {e:.1f} m vs filterpy {ef:.1f} m"
+    assert e <= ec, f"recipe {e:.1f} m vs CV {ec:.1f} m"
+
+
+@pytest.mark.parametrize("name", sorted(_MISSES))
+def test_no_divergence_on_the_missed_flights(baseline, flights, name):
+    e, ef, ec, finite, vmax = figures(baseline, flights[name])
+    assert finite and vmax < A.MAX_SPEED_MPS and e < 1.1 * min(ef, ec)
