@@ -329,6 +329,19 @@ def _call_checked(fn, X, name: str, shape: tuple) -> np.ndarray:
     return out
 
 
+def _weigh_and_record(out, k, lw, X, z, gone, h, Wc, angles):
+    """Step ``k`` of a particle filter's loop: reweight by ``z`` (runs where ``gone`` keep their
+    weights), then record the evidence, the weighted moments and the ESS :math:`1/\\sum w^2` in
+    ``out``. Returns the log-weights and the weights."""
+    if not gone.all():
+        lw, ev = _reweight(lw, X, z, gone, h, Wc, angles, k)
+        out.log_evidence[k] = np.where(gone, 0.0, ev)
+    w = np.exp(lw)
+    out.x[k], out.P[k] = _moments(X, w)
+    out.ess[k] = 1.0 / np.sum(w * w, axis=-1)
+    return lw, w
+
+
 class _Recorder:
     def __init__(self, T, batch, n, r=None):
         self.x = np.empty((T,) + batch + (n,))
@@ -425,13 +438,7 @@ def bootstrap_filter(zs, x0, P0, f, Q, h, R, N: int, rng: np.random.Generator, *
     out = _Recorder(T, batch, n)
     missing = np.broadcast_to(missing, (T,) + batch)
     for k in range(T):
-        gone = missing[k]
-        if not gone.all():
-            lw, ev = _reweight(lw, X, zs[k], gone, hs[k], Wc, angles, k)
-            out.log_evidence[k] = np.where(gone, 0.0, ev)
-        w = np.exp(lw)
-        out.x[k], out.P[k] = _moments(X, w)
-        out.ess[k] = 1.0 / np.sum(w * w, axis=-1)
+        lw, w = _weigh_and_record(out, k, lw, X, zs[k], missing[k], hs[k], Wc, angles)
         X_last, lw_last = X, lw
         if k == T - 1:
             break
@@ -567,13 +574,7 @@ def jump_markov_filter(zs, x0, P0, models: Sequence, transition, mu0, h, R, N: i
     out = _Recorder(T, batch, n, r)
     missing = np.broadcast_to(missing, (T,) + batch)
     for k in range(T):
-        gone = missing[k]
-        if not gone.all():
-            lw, ev = _reweight(lw, X, zs[k], gone, hs[k], Wc, angles, k)
-            out.log_evidence[k] = np.where(gone, 0.0, ev)
-        w = np.exp(lw)
-        out.x[k], out.P[k] = _moments(X, w)
-        out.ess[k] = 1.0 / np.sum(w * w, axis=-1)
+        lw, w = _weigh_and_record(out, k, lw, X, zs[k], missing[k], hs[k], Wc, angles)
         out.mu[k] = np.stack([np.sum(np.where(modes == j, w, 0.0), axis=-1) for j in range(r)], axis=-1)
         X_last, lw_last, modes_last = X, lw, modes
         if k == T - 1:
