@@ -52,7 +52,7 @@ import jax.numpy as jnp  # noqa: E402
 
 import kftrack  # noqa: E402
 from kftrack.imm import IMM, KalmanMode, imm_filter  # noqa: E402
-from kftrack.kalman import kalman_filter, predict, update  # noqa: E402
+from kftrack.kalman import KalmanStepper, kalman_filter, predict, update  # noqa: E402
 from kftrack.kernels import kf_predict, kf_update  # noqa: E402
 from kftrack.models import ConstantVelocity, KnownTurn  # noqa: E402
 
@@ -189,17 +189,47 @@ def _jax_args(*arrays):
     return [jax.device_put(jnp.asarray(a)) for a in arrays]
 
 
-def make_kftrack_jax(zs, x0, P0, F, Q, H, R):
+def make_kftrack_jax(zs, x0, P0, F, Q, H, R, priors: bool = True):
     args = _jax_args(zs, x0, P0, F, Q, H, R)
     try:
-        res = kalman_filter(*args)
+        res = kalman_filter(*args, priors=priors)
     except Exception as exc:  # the engine is being written: report, do not fail
         raise NotAvailable(f"kalman_filter on jax arrays raised {type(exc).__name__}: {str(exc)[:120]}") from None
     if not is_jax(res.x):
         raise NotAvailable("kalman_filter on jax arrays returned NumPy arrays (no JAX engine yet)")
-    run = lambda: block(kalman_filter(*args)).x  # noqa: E731
+    run = lambda: block(kalman_filter(*args, priors=priors)).x  # noqa: E731
     run.warm_calls = 1  # the call above compiled and ran once: not part of the compile time
     return run
+
+
+def make_kftrack_jax_posteriors(zs, x0, P0, F, Q, H, R):
+    """The JAX engine with ``priors=False``: filtered means and covariances, NIS and log-likelihood
+    per step (dynamax's outputs, plus the two per-step scores)."""
+    return make_kftrack_jax(zs, x0, P0, F, Q, H, R, priors=False)
+
+
+FLOOR_LAYOUTS = ("kftrack", "kftrack_posteriors", "dynamax")  # the result layouts of output_floor
+
+
+def output_floor(T: int, runs: int, n: int, layout: str, repeats: int) -> float:
+    """Steps/s of writing only the result arrays of one implementation (no filtering), as one jitted
+    call. ``layout``: ``"kftrack"``, the ``FilterResult`` (priors and posteriors, NIS,
+    log-likelihood: ``2n + 2n^2 + 2`` numbers per run and step); ``"kftrack_posteriors"``, the
+    ``FilterResult`` of ``priors=False`` (posteriors, NIS, log-likelihood: ``n + n^2 + 2``); or
+    ``"dynamax"`` (filtered means and covariances: ``n + n^2``, one log-likelihood per run).
+    Fresh output buffers are written on every call, as by the filters themselves."""
+    posteriors = [(T, runs, n), (T, runs, n, n), (T, runs), (T, runs)]
+    shapes = {"kftrack": [(T, runs, n), (T, runs, n, n)] + posteriors, "kftrack_posteriors": posteriors,
+              "dynamax": [(runs, T, n), (runs, T, n, n), (runs,)]}[layout]
+    fn = jax.jit(lambda a: tuple(jnp.broadcast_to(a * (i + 1), shp) for i, shp in enumerate(shapes)))
+    a = jnp.ones(())
+    block(fn(a))
+    times = []
+    for _ in range(max(3, repeats)):
+        t0 = time.perf_counter()
+        block(fn(a))
+        times.append(time.perf_counter() - t0)
+    return runs * T / min(times)
 
 
 def make_filterpy(zs, x0, P0, F, Q, H, R):
@@ -226,6 +256,8 @@ KF_IMPLS = [  # key, label, maker, engine kind, subset of runs (None: all)
     ("dynamax", "dynamax 1.0.3 `lgssm_filter`, `jit(vmap)`, CPU, float64", make_dynamax, "jax", None),
     ("dynamax_means", "dynamax 1.0.3, as above, returning the filtered means only", make_dynamax_means, "jax", None),
     ("kftrack_jax", "kftrack `kalman_filter`, JAX engine (`lax.scan` under `jit`)", make_kftrack_jax, "jax", None),
+    ("kftrack_jax_post", "kftrack `kalman_filter(..., priors=False)`, JAX engine (the outputs of dynamax: filtered "
+     "means and covariances, plus NIS and log-likelihood per step)", make_kftrack_jax_posteriors, "jax", None),
     ("filterpy", "filterpy 2.0.0 `KalmanFilter`, loop over runs", make_filterpy, "python", 50),
 ]
 
@@ -578,6 +610,10 @@ def main(argv=None) -> dict:
     for key in ("dynamax", "dynamax_means"):
         if key in kf and kf[key].get("available"):
             kf[key]["extra_bound"] = T_KF * DYNAMAX_BOOST / float(np.linalg.eigvalsh(R)[0])
+    floor = {lay: output_floor(T_KF, RUNS, n, lay, REPEATS) for lay in FLOOR_LAYOUTS}
+    print(f"  writing the result arrays alone (no filtering): kftrack's {fmt_rate(floor['kftrack'])} steps/s, "
+          f"kftrack's with priors=False {fmt_rate(floor['kftrack_posteriors'])}, "
+          f"dynamax's {fmt_rate(floor['dynamax'])} steps/s")
 
     Rb = np.broadcast_to(R, (RUNS, 2, 2))
     print(f"\nKF with one R per run (equal values, shape ({RUNS}, 2, 2)): the covariance recursion per run")
@@ -609,7 +645,17 @@ def main(argv=None) -> dict:
             f.predict()
         return out
 
-    def kernel_steps():  # the floor of a validated-once stepper: the unchecked kernels alone
+    def stepper_steps():  # validated once; the kernels, the covariances reused once they repeat to the last bit
+        s = KalmanStepper(x0, P0, F, Q, H, R)
+        out = np.empty((T_SINGLE, 4))
+        for k in range(T_SINGLE):
+            s.update(z1[k])
+            out[k] = s.x
+            s.predict()
+        stepper_steps.reused_from = s.reused_from
+        return out
+
+    def kernel_steps():  # the unchecked kernels alone, the whole recursion at every step
         x, P, out = x0, P0, np.empty((T_SINGLE, 4))
         for k in range(T_SINGLE):
             u = kf_update(x, P, z1[k], H, R)
@@ -635,6 +681,8 @@ def main(argv=None) -> dict:
 
     single = run_group([("kftrack_step", "kftrack `predict` + `update`, one call each per step", as_run(kftrack_steps),
                          "numpy", None),
+                        ("stepper_step", "kftrack `KalmanStepper.predict` + `update`", as_run(stepper_steps),
+                         "numpy", None),
                         ("filterpy_step", "filterpy 2.0.0 `KalmanFilter.predict` + `update`", as_run(filterpy_steps),
                          "numpy", None),
                         ("kernels_step", "kftrack.kernels `kf_update` + `kf_predict` (unchecked)", as_run(kernel_steps),
@@ -644,6 +692,22 @@ def main(argv=None) -> dict:
                        lambda k: (), T_SINGLE, 1, REPEATS, "kftrack_step", "single")
     for rec in single.values():
         rec["us_per_step"] = 1e6 * rec["time_s"] / T_SINGLE
+    # the stepper's two phases: the whole recursion until the covariances repeat, the mean alone after
+    rf = stepper_steps.reused_from
+    if rf is not None and 0 < rf < T_SINGLE:
+        phase = [np.inf, np.inf]
+        for _ in range(REPEATS):
+            s = KalmanStepper(x0, P0, F, Q, H, R)
+            for i, ks in enumerate((range(rf), range(rf, T_SINGLE))):
+                t0 = time.perf_counter()
+                for k in ks:
+                    s.update(z1[k])
+                    s.predict()
+                phase[i] = min(phase[i], time.perf_counter() - t0)
+        single["stepper_step"].update(reused_from=int(rf), us_before_reuse=1e6 * phase[0] / rf,
+                                      us_after_reuse=1e6 * phase[1] / (T_SINGLE - rf))
+        print(f"  stepper: covariances reused from update {rf} on; {1e6 * phase[0] / rf:.1f} us per step before, "
+              f"{1e6 * phase[1] / (T_SINGLE - rf):.1f} us after")
     bound_single = agreement_bound(T_SINGLE, n, kappa_kf)
 
     # ---- IMM ---------------------------------------------------------------------------------
@@ -667,6 +731,7 @@ def main(argv=None) -> dict:
         return g[k]["rate"] if k in g and g[k].get("available", True) else None
 
     np_rate, jx_rate = rate(kf, "kftrack_numpy"), rate(kf, "kftrack_jax")
+    jx_post = rate(kf, "kftrack_jax_post")  # priors=False: dynamax's outputs (plus NIS, log-likelihood per step)
     for g, flops in ((kf, f_kf), (kf_perrun, f_kf), (imm, f_imm)):
         for rec in g.values():
             rec["fraction_of_limit"] = None if rec["rate"] is None else rec["rate"] * flops / peak1
@@ -681,9 +746,9 @@ def main(argv=None) -> dict:
     targets = [
         check("NumPy engine vs naive broadcast", np_rate, rate(kf, "naive"), 1.3),
         check("NumPy engine vs simdkalman", np_rate, rate(kf, "simdkalman"), 3.0),
-        check("single track stepped vs filterpy", single["kftrack_step"]["rate"], single["filterpy_step"]["rate"], 1.5),
-        check("JAX engine vs dynamax (same outputs)", jx_rate, rate(kf, "dynamax"), 1.0, 1.5),
-        check("JAX engine vs dynamax (means only)", jx_rate, rate(kf, "dynamax_means"), 1.0, 1.5),
+        check("single track stepped vs filterpy", single["stepper_step"]["rate"], single["filterpy_step"]["rate"], 1.5),
+        check("JAX engine vs dynamax (same outputs)", jx_post, rate(kf, "dynamax"), 1.0, 1.5),
+        check("JAX engine vs dynamax (means only)", jx_post, rate(kf, "dynamax_means"), 1.0, 1.5),
         check("JAX IMM vs NumPy IMM", rate(imm, "imm_jax"), rate(imm, "imm_numpy"), 50.0),
     ]
 
@@ -701,6 +766,8 @@ def main(argv=None) -> dict:
         ratio = "n/a" if t["ratio"] is None else f"{t['ratio']:.2f}x"
         aim = f" (aim {t['aim']}x)" if t["aim"] else ""
         print(f"  target {t['target']:38s} >= {t['need']}x{aim}: measured {ratio:>8s}  {t['status']}")
+    print(f"  (the JAX targets use kalman_filter(..., priors=False); with its full output, priors too, the JAX engine "
+          f"runs at {fmt_ratio(jx_rate, rate(kf, 'dynamax'))}x dynamax's rate)")
 
     print("\nagreement of the filtered means with kftrack's NumPy engine (max over steps and runs of "
           "|dx|_inf / |x|_inf)")
@@ -736,7 +803,7 @@ def main(argv=None) -> dict:
         "flops_per_step": {"kf": f_kf, "kf_mean_only": f_mean, "imm": f_imm, "n": n, "m": m, "imm_modes": r},
         "workload": {"runs": RUNS, "kf_steps": T_KF, "imm_steps": T_IMM, "single_steps": T_SINGLE, "dt": DT,
                      "q": Q_DENSITY, "sigma_z": SIGMA_Z, "turn_rate_deg_s": float(np.rad2deg(TURN_RATE))},
-        "kf": strip(kf), "kf_perrun": strip(kf_perrun), "single": strip(single), "imm": strip(imm), "targets": targets,
+        "kf": strip(kf), "kf_output_floor": floor, "kf_perrun": strip(kf_perrun), "single": strip(single), "imm": strip(imm), "targets": targets,
         "agreement": {"C": C_BOUND, "kappa_kf": kappa_kf, "kappa_imm": kappa_imm, "bound_kf": bound_kf,
                       "bound_single": bound_single, "bound_imm": bound_imm, "all_agree": bool(ok_all)},
         "sweep": sweep, "total_s": total,
@@ -811,7 +878,7 @@ def plot_sweep(sweep, path, peak, f_kf, f_mean):
     use_book_style()
     fig, ax = plt.subplots(figsize=(9.0, 4.6))
     markers = dict(kftrack_numpy="o", naive="s", simdkalman="^", dynamax="D", dynamax_means="d", kftrack_jax="*",
-                   filterpy="v")
+                   kftrack_jax_post="P", filterpy="v")
     for key, rec in sweep["impls"].items():
         if not rec["points"]:
             continue
@@ -849,12 +916,24 @@ def target_notes(res) -> dict:
 
     per_np, per_naive = rt(kp, "kftrack_numpy"), rt(kp, "naive")
     per_jx, per_dm = rt(kp, "kftrack_jax"), rt(kp, "dynamax")
-    perrun = (f"with one R per run both compute the covariances per run: kftrack JAX {fmt_rate(per_jx)}, dynamax "
-              f"{fmt_rate(per_dm)} steps/s ({ratio(per_jx, per_dm)})" if per_jx and per_dm else
-              "the per-run-R comparison is not in this results file")
-    shared = ("dynamax's `jit(vmap)` with shared parameters also computes the covariances once (vmap leaves "
-              "values that do not depend on the batched data unbatched), so both sides use the shared recursion; "
-              "kftrack returns priors and posteriors (two covariance sequences per run), dynamax one; " + perrun)
+    perrun = (f"with one R per run both compute the covariances per run: kftrack JAX (full output) "
+              f"{fmt_rate(per_jx)}, dynamax {fmt_rate(per_dm)} steps/s ({ratio(per_jx, per_dm)})" if per_jx and per_dm
+              else "the per-run-R comparison is not in this results file")
+    fo = res.get("kf_output_floor") or {}
+    floor_note = (f"; writing these result arrays alone, with no filtering, runs at "
+                  f"{fmt_rate(fo['kftrack_posteriors'])} steps/s for kftrack's with `priors=False`, "
+                  f"{fmt_rate(fo['kftrack'])} with the priors and "
+                  f"{fmt_rate(fo['dynamax'])} for dynamax's (fresh output buffers on every call)"
+                  if all(fo.get(k) for k in ("kftrack", "kftrack_posteriors", "dynamax")) else "")
+    jx_full, jx_post, dm = rt(kf, "kftrack_jax"), rt(kf, "kftrack_jax_post"), rt(kf, "dynamax")
+    shared = ("compared like with like: kftrack `kalman_filter(..., priors=False)` returns the filtered means and "
+              "covariances, NIS and log-likelihood per step (n + n² + 2 numbers per run and step), dynamax the "
+              f"filtered means and covariances (n + n²): {fmt_rate(jx_post)} against {fmt_rate(dm)} steps/s "
+              f"({ratio(jx_post, dm)}); with its "
+              f"full output, priors too (2n + 2n² + 2), kftrack runs at {fmt_rate(jx_full)} steps/s "
+              f"({ratio(jx_full, dm)} dynamax). dynamax's `jit(vmap)` with shared parameters also computes the "
+              "covariances once (vmap leaves values that do not depend on the batched data unbatched), so both sides "
+              "use the shared recursion" + floor_note + "; " + perrun)
     g_imm = rt(imm, "imm_jax") * fl["imm"] / 1e9 if rt(imm, "imm_jax") else None
     g_kf = per_jx * fl["kf"] / 1e9 if per_jx else None
     ceiling = (g_kf * 1e9 / fl["imm"] / rt(imm, "imm_numpy")) if g_kf and rt(imm, "imm_numpy") else None
@@ -863,14 +942,19 @@ def target_notes(res) -> dict:
                 + (f" ({g_imm:.2g} GFLOP/s of counted flops)" if g_imm else "")
                 + (f"; XLA reaches {g_kf:.2g} GFLOP/s on the per-run Kalman filter on this CPU, which puts the "
                    f"ceiling of the JAX IMM near {ceiling:.2g}× the NumPy IMM, not 50×" if ceiling else ""))
-    ks, fs = s.get("kernels_step", {}), s.get("filterpy_step", {})
-    single_fail = ("the public `predict`/`update` check every covariance (shape, symmetry, semi-definiteness) at "
-                   "every call; even the unchecked kernels take "
-                   + (f"{ks['us_per_step']:.0f} µs per step against filterpy's {fs['us_per_step']:.0f} µs"
-                      if ks and fs else "longer than filterpy")
-                   + ": a step is ~35 NumPy calls of ~1 µs each on 4 × 4 arrays plus 3 LAPACK wrapper calls, and "
-                   "beating filterpy by 1.5× would need a second, NumPy-only copy of the equations tuned for one "
-                   "track, which the design (one set of equations) forbids")
+    ks, fs, st, kp_ = (s.get(k, {}) for k in ("kernels_step", "filterpy_step", "stepper_step", "kftrack_step"))
+    if st.get("reused_from") is not None and ks and fs and kp_:
+        single_why = ("`KalmanStepper` validates its inputs once, at construction, then calls the kernels; the covariance "
+                      "recursion (P, S, K) does not depend on the data and repeats to the last bit from update "
+                      f"{st['reused_from']} of {res['workload']['single_steps']} on, after which a step computes the mean "
+                      f"alone, bit for bit what the kernels give: {st['us_before_reuse']:.0f} µs per step before, "
+                      f"{st['us_after_reuse']:.0f} µs after ({st['us_per_step']:.0f} µs on average; the public "
+                      f"`predict`/`update`, which check every covariance at every call, {kp_['us_per_step']:.0f} µs; "
+                      f"the unchecked kernels {ks['us_per_step']:.0f} µs; filterpy {fs['us_per_step']:.0f} µs); the "
+                      "unbatched NumPy solves and log-determinant call `numpy.linalg`'s LAPACK gufuncs without its "
+                      "Python layer (the same bits)")
+    else:  # a results file without the stepper
+        single_why = "the stepper's phases are not in this results file (re-run `make benchmark`)"
     naive_pass = ("met through the shared-covariance path (the covariances computed once for all runs); with one "
                   f"R per run kftrack runs the same per-run recursion as the naive broadcast ({ratio(per_np, per_naive)})"
                   if per_np and per_naive else "met through the shared-covariance path (the covariances computed once "
@@ -881,10 +965,12 @@ def target_notes(res) -> dict:
     return {
         "NumPy engine vs naive broadcast": {"PASS": naive_pass, "FAIL": naive_fail},
         "NumPy engine vs simdkalman": {"PASS": "met; " + simd, "FAIL": "not met; " + simd},
-        "single track stepped vs filterpy": {"PASS": "met", "FAIL": single_fail},
+        "single track stepped vs filterpy": {"PASS": "met: " + single_why, "FAIL": "not met: " + single_why},
         "JAX engine vs dynamax (same outputs)": {"PASS": "met; " + shared, "FAIL": shared},
-        "JAX engine vs dynamax (means only)": {"PASS": "met", "FAIL": "kftrack always returns the whole posterior; "
-                                               "this row measures dynamax writing less, not a faster filter"},
+        "JAX engine vs dynamax (means only)": {"PASS": "met (kftrack with `priors=False`)",
+                                               "FAIL": "kftrack returns at least the filtered means and covariances "
+                                               "(`priors=False`); this row measures dynamax writing less, not a "
+                                               "faster filter"},
         "JAX IMM vs NumPy IMM": {"PASS": "met", "FAIL": imm_fail},
     }
 

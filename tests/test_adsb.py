@@ -132,6 +132,31 @@ def test_enu_round_trip():
     assert worst <= 50 * 6.4e6 * np.finfo(float).eps
 
 
+def test_horizontal_inverse_lands_on_the_ellipsoid():
+    # predictions in east-north mean points at height 0, like the fixes: the inverse returns the
+    # point whose to_enu east-north are the given ones, where up = 0 (the tangent plane) is off by
+    # about d^3 / 2R^2 (12 m at 100 km)
+    rng = np.random.default_rng(18)
+    origin = (52.3, 4.7, 0.0)
+    en = np.column_stack([rng.uniform(-2e5, 2e5, 300), rng.uniform(-2e5, 2e5, 300)])
+    en[5] = np.nan
+    lat, lon = adsb.from_enu_horizontal(en, origin)
+    back = adsb.to_enu(lat, lon, origin=origin)[0]
+    assert np.isnan(lat[5]) and np.isnan(lon[5])
+    ok = np.isfinite(en[:, 0])
+    assert np.max(np.abs(back[ok, :2] - en[ok])) <= 1e-6                        # the stopping tolerance
+    lat0, lon0, _ = adsb.from_enu(np.column_stack([en, np.zeros(len(en))]), origin)
+    naive = adsb.to_enu(lat0, lon0, origin=origin)[0]
+    d = np.hypot(en[ok, 0], en[ok, 1])
+    far = d > 1e5
+    # the tangent-plane shortcut really is off by metres far out (so the test above has power)
+    assert np.all(np.hypot(*(naive[ok, :2] - en[ok]).T)[far] > 0.2 * d[far] ** 3 / (2 * 6.371e6 ** 2))
+    with pytest.raises(ValueError, match="en"):
+        adsb.from_enu_horizontal(np.zeros((3, 3)), origin)
+    with pytest.raises(ValueError, match="tol_m"):
+        adsb.from_enu_horizontal(en, origin, tol_m=0.0)
+
+
 def test_enu_default_origin_and_nan_rows():
     lat = np.array([np.nan, 45.0, 45.001])
     lon = np.array([7.0, 7.0, 7.0])

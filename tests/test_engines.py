@@ -138,6 +138,55 @@ def test_shared_covariance_recursion_equals_the_batched_one():
     _agree(shared, sj, zs.shape[0], 4, cond_S(shared, H, R))
 
 
+@pytest.mark.parametrize("form", ["shared", "mixed", "per_run_R", "time_varying"])
+def test_priors_false_drops_the_predictions_and_keeps_the_rest(form):
+    rng = np.random.default_rng(16)
+    zs, x0, P0 = data(rng, missing="shared" if form == "shared" else "mixed")
+    T = zs.shape[0]
+    F, Q, R_, kw = MODEL.F(1.0), MODEL.Q(1.0), R, {}
+    if form == "per_run_R":
+        R_ = np.stack([R * s for s in np.linspace(0.5, 3.0, zs.shape[1])])
+    elif form == "time_varying":
+        dts = rng.choice([0.3, 1.0, 2.2], size=T)
+        F, Q, kw = np.stack([MODEL.F(d) for d in dts]), np.stack([MODEL.Q(d) for d in dts]), {"time_varying": True}
+    a = kalman_filter(zs, x0, P0, F, Q, H, R_, **kw)
+    a0 = kalman_filter(zs, x0, P0, F, Q, H, R_, priors=False, **kw)
+    assert a0.x_prior is None and a0.P_prior is None
+    # NumPy engine: the same operations in the same order, only fewer stores: the same bits
+    for name in ("x", "P", "nis", "loglik"):
+        assert np.array_equal(getattr(a, name), getattr(a0, name), equal_nan=True), name
+    b = kalman_filter(*jx(zs), x0, P0, F, Q, H, R_, **kw)
+    b0 = kalman_filter(*jx(zs), x0, P0, F, Q, H, R_, priors=False, **kw)
+    assert b0.x_prior is None and b0.P_prior is None
+    assert all(isinstance(getattr(b0, k), jax.Array) for k in ("x", "P", "nis", "loglik"))
+    # JAX engine: another compiled program (fewer outputs), which XLA may fuse differently, so the
+    # engines' bound T n cond eps scale (measured on x86-64 with jax 0.10.2: the same bits)
+    post = b._fields[2:]  # x, P, nis, loglik
+    _agree(b[2:], b0[2:], T, 4, cond_S(a, H, R_), names=post)
+    _agree(a[2:], b0[2:], T, 4, cond_S(a, H, R_), names=post)
+    for res in (a0, b0):
+        with pytest.raises(ValueError, match=r"^result has no priors .*priors=True"):
+            rts_smoother(res, F, **kw)
+
+
+def test_priors_false_compiled_program_writes_only_the_posteriors():
+    # the JAX engine's compiled program: its outputs are x, P, nis, loglik only (no predictions)
+    zs, x0, P0 = data(np.random.default_rng(17), T=50, runs=30, missing="none")
+    T, runs, n = zs.shape[0], zs.shape[1], 4
+    F, Q = MODEL.F(1.0), MODEL.Q(1.0)
+    size = {}
+    for priors in (True, False):
+        fn = jax.jit(lambda z, p=priors: kalman_filter(z, x0, P0, F, Q, H, R, priors=p))
+        mem = fn.lower(jnp.asarray(zs)).compile().memory_analysis()
+        if mem is None:
+            pytest.skip("this JAX backend reports no memory analysis")
+        size[priors] = mem.output_size_in_bytes
+    per_step = {True: 2 * (n + n * n) + 2, False: n + n * n + 2}  # numbers per run and step
+    for priors, count in per_step.items():
+        data_bytes = T * runs * count * 8
+        assert data_bytes <= size[priors] < data_bytes + 1024, (priors, size[priors], data_bytes)  # + a few pointers
+
+
 @pytest.mark.parametrize("which", ["P0", "F", "Q", "H", "R", "missing"])
 def test_per_run_covariances_are_never_shared(which):
     # one input differs between runs (or one run misses a row the others have): the covariance

@@ -163,6 +163,41 @@ def test_kalman_filter_batch_with_missing_in_some_runs_only():
     assert np.isnan(res.nis[4, 1]) and not np.isnan(res.nis[4, 0])
 
 
+def test_kalman_filter_without_priors_same_bits_less_memory():
+    import tracemalloc
+
+    rng = np.random.default_rng(7)
+    F, Q, H, R = cv2d()
+    x0, P0 = np.zeros(4), 10.0 * np.eye(4)
+    _, zs = simulate(rng, F, Q, H, R, x0, P0, 40, 3)
+    zs[6] = np.nan
+    zs[9, 1] = np.nan  # one run only: per-run covariances
+    for z in (zs[:, 0], zs):
+        full = kalman.kalman_filter(z, x0, P0, F, Q, H, R)
+        post = kalman.kalman_filter(z, x0, P0, F, Q, H, R, priors=False)
+        assert post.x_prior is None and post.P_prior is None
+        for name in ("x", "P", "nis", "loglik"):  # the same operations in the same order: the same bits
+            assert np.array_equal(getattr(full, name), getattr(post, name), equal_nan=True), name
+    with pytest.raises(ValueError, match=r"^result has no priors .*priors=True"):
+        kalman.rts_smoother(post, F)
+    with pytest.raises(TypeError, match=r"^priors must be True or False, got 'no'"):
+        kalman.kalman_filter(zs, x0, P0, F, Q, H, R, priors="no")
+    with pytest.raises(TypeError, match=r"^priors must be True or False, got 0"):
+        kalman.kalman_filter(zs, x0, P0, F, Q, H, R, priors=0)
+    # neither sequence of predictions is allocated: the peak drops by at least 90 % of their size
+    # (the step's temporaries, a few (runs, n, n) arrays, are the same in both calls)
+    big = np.broadcast_to(zs[:, :1], (40, 2000, 2)).copy()
+    R_runs = np.broadcast_to(R, (2000, 2, 2))  # per-run covariances: P_prior is (T, runs, n, n)
+    peak = {}
+    for priors in (True, False):
+        tracemalloc.start()
+        kalman.kalman_filter(big, x0, P0, F, Q, H, R_runs, priors=priors)
+        peak[priors] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    prior_bytes = 40 * 2000 * (4 + 16) * 8
+    assert peak[True] - peak[False] >= 0.9 * prior_bytes, (peak, prior_bytes)
+
+
 def test_rts_smoother_matches_filterpy_and_reduces_covariance():
     rng = np.random.default_rng(6)
     F, Q, H, R = cv2d()
@@ -285,3 +320,175 @@ def test_none_and_complex_input_is_refused_not_coerced(bad):
     """NumPy would turn None into NaN and drop an imaginary part with only a warning."""
     with pytest.raises(TypeError, match="^F must be an array of real numbers, got (None|complex)"):
         kalman.predict(np.zeros(2), np.eye(2), bad, np.eye(2))
+
+
+# --- the stepper: validated once, the covariance recursion reused once it repeats ----------------
+
+
+def stepper_data(T=500, missing=250, runs=None):
+    """The benchmark's workload (2-D constant velocity, q = 0.1, sigma_z = 5 m, P0 = 100 I) with
+    one missing measurement."""
+    F, Q, H, R = cv2d(dt=1.0, q=0.1, r=25.0)
+    x0, P0 = np.zeros(4), 100.0 * np.eye(4)
+    _, zs = simulate(np.random.default_rng(19), F, Q, H, R, x0, P0, T, runs or 1)
+    zs = zs if runs else zs[:, 0]
+    zs[missing] = np.nan
+    return zs, x0, P0, F, Q, H, R
+
+
+def run_stepper(s, zs):
+    """Step ``s`` through ``zs`` (update then predict); everything it shows after each update."""
+    out = {k: [] for k in ("x", "P", "nis", "loglik", "x_prior", "P_prior", "reused_from")}
+    for z in zs:
+        out["x_prior"].append(s.x)
+        out["P_prior"].append(s.P)
+        s.update(z)
+        for k in ("x", "P", "nis", "loglik", "reused_from"):
+            out[k].append(getattr(s, k))
+        s.predict()
+    return out
+
+
+def test_stepper_is_the_kernels_bit_for_bit_and_reuses_the_covariances():
+    from kftrack.kernels import kf_predict, kf_update
+
+    zs, x0, P0, F, Q, H, R = stepper_data()
+    T = zs.shape[0]
+    got = run_stepper(kalman.KalmanStepper(x0, P0, F, Q, H, R), zs)
+    x, P = x0, P0  # the unchecked kernels at every step
+    for k in range(T):
+        assert np.array_equal(got["x_prior"][k], x) and np.array_equal(got["P_prior"][k], P), k
+        if k == 250:  # missing: no update
+            assert np.isnan(got["nis"][k]) and np.isnan(got["loglik"][k])
+        else:
+            u = kf_update(x, P, zs[k], H, R)
+            x, P = u.x, u.P
+            assert got["nis"][k] == u.nis and got["loglik"][k] == u.loglik, k
+        assert np.array_equal(got["x"][k], x) and np.array_equal(got["P"][k], P), k
+        x, P = kf_predict(x, P, F, Q)
+    rf = got["reused_from"]
+    first = next(k for k in range(T) if rf[k] is not None)
+    assert first < 250 and all(rf[k] == first for k in range(first, 250))  # engaged, and stays
+    assert got["P"][first] is got["P"][first - 1]  # really reused: the same array, not recomputed
+    assert rf[250] is None and rf[251] is None  # a missing measurement breaks the fixed point
+    again = next(k for k in range(251, T) if rf[k] is not None)
+    assert all(rf[k] == again for k in range(again, T)) and got["P"][-1] is got["P"][again]
+
+
+def test_stepper_equals_kalman_filter_bit_for_bit():
+    from kftrack.models import ConstantVelocity
+
+    zs, x0, P0, F, Q, H, R = stepper_data(T=300, missing=120)
+    ref = kalman.kalman_filter(zs, x0, P0, F, Q, H, R)
+    got = run_stepper(kalman.KalmanStepper(x0, P0, F, Q, H, R), zs)
+    for name in kalman.FilterResult._fields:  # the same kernel calls: the same bits, not a tolerance
+        assert np.array_equal(np.stack(got[name]), getattr(ref, name), equal_nan=True), name
+    # F, Q as callables of the interval, as kalman_filter takes a model (cv2d is this model written out)
+    cv = ConstantVelocity(ndim=2, q=0.1)
+    np.testing.assert_array_equal(cv.F(1.0), F)
+    got_dt = run_stepper(kalman.KalmanStepper(x0, P0, cv.F, cv.Q, H, R, dt=1.0), zs)
+    ref_dt = kalman.kalman_filter(zs, x0, P0, cv.F, cv.Q, H, R, dt=1.0)
+    assert np.array_equal(np.stack(got_dt["x"]), ref_dt.x)
+    # many tracks in one stepper, the covariances shared, a step missing in all of them
+    zb, *_ = stepper_data(T=80, missing=30, runs=3)
+    refb = kalman.kalman_filter(zb, x0, P0, F, Q, H, R)
+    gotb = run_stepper(kalman.KalmanStepper(np.zeros((3, 4)), P0, F, Q, H, R), zb)
+    assert np.array_equal(np.stack(gotb["x"]), refb.x)
+    assert np.array_equal(np.stack(gotb["nis"]), refb.nis, equal_nan=True)
+    assert np.array_equal(np.stack(gotb["P"]), refb.P[:, 0])
+
+
+def test_stepper_missing_measurement_forms_and_read_only_state():
+    F, Q, H, R = cv2d()
+    s = kalman.KalmanStepper(np.zeros(4), np.eye(4), F, Q, H, R)
+    assert np.isnan(s.nis) and s.y is None and s.K is None and s.steps == 0
+    s.update(None)
+    s.update(np.full(2, np.nan))
+    np.testing.assert_array_equal(s.x, np.zeros(4))
+    np.testing.assert_array_equal(s.P, np.eye(4))
+    assert s.steps == 2 and np.isnan(s.loglik) and s.reused_from is None
+    s.update([1.0, 2.0])  # a list is converted (slow path), the same as an array
+    u = kalman.update(np.zeros(4), np.eye(4), np.array([1.0, 2.0]), H, R)
+    assert np.array_equal(s.x, u.x) and s.nis == u.nis and s.loglik == u.loglik
+    assert np.array_equal(s.K, u.K) and np.array_equal(s.S, u.S) and np.array_equal(s.y, u.y)
+    with pytest.raises(ValueError, match="read-only"):
+        s.P[0, 0] = 5.0  # the covariance may be shared with the cache: it must not change behind it
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(x0=np.zeros(3)), r"^P0 must have shape"),
+        (dict(P0=-np.eye(4)), "^P0 must be positive semi-definite"),
+        (dict(F=np.eye(3)), r"^F must have shape \(\.\.\., 4, 4\)"),
+        (dict(Q=np.ones((4, 4)) - 2 * np.eye(4)), "^Q must be positive semi-definite"),
+        (dict(H=np.ones((2, 3))), r"^H must have shape \(\.\.\., 2, 4\)"),
+        (dict(R=np.zeros((2, 2))), "^R must be positive definite"),
+        (dict(R=np.eye(3)), r"^R must have shape \(\.\.\., 2, 2\), got shape \(3, 3\) \(m = 2 from H\)"),
+        (dict(F=lambda dt: np.eye(4)), "F is a callable"),
+        (dict(F=lambda dt: np.eye(4), Q=lambda dt: np.eye(4), dt=-1.0), "dt must be"),
+        (dict(form="short"), "form must be one of"),
+        (dict(x0=np.zeros((3, 4)), R=np.broadcast_to(np.eye(2), (2, 2, 2))), "batch axes do not broadcast"),
+    ],
+)
+def test_stepper_bad_input_names_the_argument(kwargs, match):
+    F, Q, H, R = cv2d()
+    args = dict(x0=np.zeros(4), P0=np.eye(4), F=F, Q=Q, H=H, R=R)
+    args.update(kwargs)
+    with pytest.raises((ValueError, TypeError), match=match):
+        kalman.KalmanStepper(**args)
+
+
+@pytest.mark.parametrize(
+    "z, match",
+    [
+        (np.zeros(3), r"^z must have shape \(\.\.\., 2\)"),
+        (np.zeros((2, 2)), r"^z must have shape \(2,\)"),
+        (np.array([1.0, np.inf]), "^z must be finite, or None or NaN"),
+        (np.array([1.0, np.nan]), "^z is only partly NaN"),
+        (np.array([1e200, 1e200]), None),  # huge but finite: a valid measurement
+        ("ab", "^z must be an array of real numbers"),
+        (np.array([1j, 0.0]), "^z must be an array of real numbers, got complex"),
+    ],
+)
+def test_stepper_bad_measurement_names_z(z, match):
+    F, Q, H, R = cv2d()
+    s = kalman.KalmanStepper(np.zeros(4), np.eye(4), F, Q, H, R)
+    if match is None:
+        s.update(z)
+        assert np.isfinite(s.x).all() and s.steps == 1
+        return
+    with pytest.raises((ValueError, TypeError), match=match):
+        s.update(z)
+    assert s.steps == 0  # a refused measurement does not count as a step
+
+
+def test_unbatched_numpy_solve_path_keeps_the_bits_and_the_errors():
+    """The unbatched NumPy branch of kernels._spd_factor/_spd_solve/_spd_logdet calls the gufuncs of
+    numpy.linalg.solve/slogdet directly once LAPACK dpotrf has factored S: the same bits as
+    numpy.linalg; a matrix that is not symmetric positive definite takes numpy.linalg itself."""
+    from kftrack import kernels
+
+    rng = np.random.default_rng(7)
+    for m in (1, 2, 3, 6):
+        S = random_spd(rng, m)
+        S = 0.5 * (S + S.T)
+        B = rng.normal(size=(m, 4))
+        assert kernels._spd_factor(np, S) is kernels._NP_SPD
+        assert np.array_equal(kernels.solve_spd(S, B), np.linalg.solve(S, B))
+        assert np.array_equal(kernels.solve_spd(S, B[None].repeat(3, 0)), np.linalg.solve(S, B[None].repeat(3, 0)))
+        assert kernels.logdet_spd(S) == np.linalg.slogdet(S)[1]
+        y = rng.normal(size=m)
+        nis, _ = kernels.innovation_score(y, S)
+        assert nis == np.sum(y * np.linalg.solve(S, y[:, None])[:, 0])
+    indefinite = np.array([[1.0, 2.0], [2.0, 1.0]])  # not positive definite, but not singular
+    B = rng.normal(size=(2, 3))
+    assert kernels._spd_factor(np, indefinite) is None
+    assert np.array_equal(kernels.solve_spd(indefinite, B), np.linalg.solve(indefinite, B))
+    nonsym = np.array([[1.0, 2.0], [0.5, 1.0]])  # singular, with a positive definite lower triangle
+    assert kernels._spd_factor(np, nonsym) is None
+    for singular in (nonsym, np.zeros((2, 2)), np.array([[1.0, 1.0], [1.0, 1.0]])):
+        with pytest.raises(np.linalg.LinAlgError, match="Singular matrix"):
+            kernels.solve_spd(singular, B)
+    for bad in (np.full((2, 2), np.nan), np.array([[np.inf, 1.0], [1.0, 1.0]])):  # dpotrf says info = 0 here
+        assert kernels._spd_factor(np, bad) is None

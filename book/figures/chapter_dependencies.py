@@ -27,6 +27,7 @@ CHAPTERS = {
     16: ("Particle filters", "16-particle-filters", (9,)),
     17: ("Tracking in clutter", "17-tracking-in-clutter", (10,)),
     18: ("Real aircraft", "18-tracking-real-aircraft", (9, 10)),
+    19: ("Two engines", "19-two-engines", (9, 18)),
 }
 
 

@@ -46,7 +46,7 @@ def filterpy_baseline(t_s, lat_deg, lon_deg):
     """One-step predictions ``(lat_pred_deg, lon_pred_deg)`` (K,) of the filterpy IMM baseline."""
     from filterpy.kalman import IMMEstimator, KalmanFilter
 
-    from kftrack.adsb import from_enu
+    from kftrack.adsb import from_enu_horizontal
     from kftrack.aircraft import _frame_of, two_point_init
     from kftrack.models import ConstantVelocity, KnownTurn
 
@@ -87,9 +87,8 @@ def filterpy_baseline(t_s, lat_deg, lon_deg):
             tl = t[k]
     lat_p, lon_p = np.full(K, np.nan), np.full(K, np.nan)
     good = np.isfinite(pred[:, 0])
-    if good.any():
-        a, b, _ = from_enu(np.column_stack([pred[good], np.zeros(good.sum())]), origin)
-        lat_p[good], lon_p[good] = a, b
+    if good.any():  # the predicted east-north on the ellipsoid, like the fixes (not on the tangent plane)
+        lat_p[good], lon_p[good] = from_enu_horizontal(pred[good], origin)
     return lat_p, lon_p
 
 

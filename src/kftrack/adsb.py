@@ -33,7 +33,7 @@ from ._validate import as_float_array
 from .datasets import data_path
 
 __all__ = ["CHAPTER_FLIGHTS", "NOISY_FLIGHTS", "UNSEEN_FLIGHTS", "COLUMNS", "Flight", "load_flight",
-           "to_enu", "from_enu"]
+           "to_enu", "from_enu", "from_enu_horizontal"]
 
 #: Flights a chapter may look at and tune on.
 CHAPTER_FLIGHTS: tuple[str, ...] = (
@@ -274,3 +274,46 @@ def from_enu(enu, origin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     lat, lon, alt = pymap3d.enu2geodetic(arr[:, 0], arr[:, 1], arr[:, 2], lat0, lon0, h0, deg=True)
     return (np.asarray(lat, float).reshape(-1), np.asarray(lon, float).reshape(-1),
             np.asarray(alt, float).reshape(-1))
+
+
+def from_enu_horizontal(en, origin, tol_m: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    r"""East-North positions (metres) of points **on the ellipsoid** (height 0) back to degrees.
+
+    The inverse of the horizontal part of :func:`to_enu` without altitude,
+    ``to_enu(lat, lon, origin=origin)[0][:, :2]``: a filter that tracks east and north only
+    (the recorded fixes at height 0) predicts ``(e, n)``, and the point it means is the one on
+    the ellipsoid with these coordinates, below the tangent plane by about
+    :math:`(e^2 + n^2)/2R`. Taking ``up = 0`` instead (a point on the tangent plane) and
+    projecting it down moves it horizontally by about :math:`d^3/2R^2` (12 m at 100 km from the
+    origin). The up coordinate is found by the fixed-point iteration
+    :math:`u_{j+1} = \mathrm{up}(\mathrm{geodetic}(e, n, u_j)\,	ext{at height } 0)`, which
+    contracts by about :math:`d/R` per step; it stops when the horizontal residual is below
+    ``tol_m``.
+
+    Parameters
+    ----------
+    en : array_like, shape (K, 2)
+        East, north, metres (NaN propagates to the row).
+    origin : tuple (lat0_deg, lon0_deg, h0_m)
+        The frame's origin, as returned by :func:`to_enu`.
+    tol_m : float
+        Horizontal tolerance of the round trip, metres (> 0).
+
+    Returns
+    -------
+    lat_deg, lon_deg : numpy.ndarray, shape (K,)
+    """
+    arr = as_float_array(en, "en")
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"en must have shape (K, 2), got shape {arr.shape}")
+    if not (isinstance(tol_m, (int, float)) and not isinstance(tol_m, bool) and tol_m > 0):
+        raise ValueError(f"tol_m must be a number > 0, got {tol_m!r}")
+    up = np.zeros(arr.shape[0])
+    good = np.isfinite(arr).all(axis=1)
+    for _ in range(20):
+        lat, lon, _alt = from_enu(np.column_stack([arr, up]), origin)
+        back, _ = to_enu(np.where(good, lat, np.nan), np.where(good, lon, np.nan), origin=origin)
+        if not good.any() or np.max(np.abs(back[good, :2] - arr[good])) <= tol_m:
+            return lat, lon
+        up = np.where(good, back[:, 2], 0.0)
+    raise RuntimeError("from_enu_horizontal did not converge (points farther than ~1000 km from the origin?)")

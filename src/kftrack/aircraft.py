@@ -43,6 +43,22 @@ not of a raw sensor. Three facts about the OpenSky/traffic samples (data/README.
    that row :math:`k-1` is interpolated given the status of row :math:`k-2`, counted online
    from the flight's earlier rows (a two-state Markov chain with a uniform Beta prior). On a
    flight without interpolated rows :math:`\pi_k \to 0` and the recipe is the filter.
+4. **A spike is held until the track reaches it.** On raw state vectors
+   (``featured/belevingsvlucht``) a row sometimes jumps 3-6 x speed x dt ahead, in one or both
+   coordinates, to where the track arrives a few seconds later, and the stream then holds that
+   position (exact repeats, or copies whose latitude creeps by 1e-7 deg) until the track gets
+   there. A spike faster than :data:`MAX_SPEED_MPS` from the last row used is skipped
+   (``implausible_speed``). While it lies ahead along the predicted velocity,
+   :math:`(z_s - \hat z_k)^\top v^- > 0`, the prediction is the held spike :math:`z_s`, and a
+   row nearer the spike than the filter's prediction that has moved less than half of
+   :math:`|v^-|\,(t_k - t_s)` from it (nearer "held" than "flown"), or that repeats one of its
+   coordinates exactly, is a held copy: skipped (``repeated_position``), it leaves the filter as
+   it was. In a stream that has held a position before, a gated row may be such a spike slower
+   than :data:`MAX_SPEED_MPS`: if the next row is its held copy (by the first test), the
+   down-weighted update with it is undone. These rules add no fitted constant: the half is the
+   midpoint between "held" (0) and "flown" (:math:`|v^-|\,\Delta t`); a quarter or the whole
+   changed belevingsvlucht's ratio to the baseline by under 0.001 (a check on that chapter
+   flight only).
 
 The process model is an IMM (Blom & Bar-Shalom 1988) of four white-noise-acceleration modes
 (spectral densities :data:`Q_MODES`, m²/s³): cruise and manoeuvre at constant velocity, and a
@@ -69,7 +85,8 @@ Bad data (never raises on a bad row; counted by reason in :attr:`TrackResult.cou
 
 * ``non_finite``: time, latitude or longitude not finite or out of range;
 * ``non_increasing_time``: a time not after the last row used;
-* ``repeated_position``: the latitude and longitude of the last row used;
+* ``repeated_position``: the latitude and longitude of the last row used, or a held copy of a
+  spike (point 4);
 * ``gated``: normalized innovation squared above :math:`\gamma = F^{-1}_{\chi^2_m}(1-\alpha)`
   (:math:`m` measured coordinates), :math:`\alpha` = :data:`FALSE_REJECTION` *under the model*.
   The data's tails are much heavier than the model's (genuine fixes after long interpolated
@@ -79,8 +96,8 @@ Bad data (never raises on a bad row; counted by reason in :attr:`TrackResult.cou
   the measurement covariance :math:`R` of point 2 in the two-point start;
 * ``implausible_speed``: a two-point start, or a step from the last row used, faster than
   :data:`MAX_SPEED_MPS` (physically impossible here: on ``featured/belevingsvlucht`` these are
-  forward spikes of 3-6 x speed x dt that are held for a few rows and after which the track
-  returns to its earlier line); skipped, counted with the gated rows towards :data:`LOST_AFTER`;
+  forward spikes of 3-6 x speed x dt, held until the track reaches them, point 4); skipped,
+  counted with the gated rows towards :data:`LOST_AFTER`;
 * ``reinit_gap``: a step longer than :data:`REINIT_GAP_S` (:func:`reinit_gap`) restarts the
   track (two-point initialisation) instead of predicting across it;
 * ``init``: the first row of a track (no prediction); ``used``: a prediction was made and the
@@ -323,6 +340,9 @@ def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, us
     dmax = 4
     missed = []
     suspect = set()            # gated rows: kept out of the segment extrapolation
+    spike = None               # (E, N, t, lat, lon) of the last rejected spike while it may be held
+    undo = None                # (state, rows) before a gated spike candidate's update
+    holds = False              # the stream has held (repeated) a position before
     last_t, last_ll = -math.inf, None
     mu0 = np.full(r, 1.0 / r)
     log2pi = math.log(2.0 * math.pi)
@@ -351,11 +371,12 @@ def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, us
             continue
         if last_ll is not None and la[k] == last_ll[0] and lo[k] == last_ll[1]:
             reason[k] = "repeated_position"
+            holds = True
             continue
         zk = np.array([E[k], N[k]])
         digits[k] = min(max(_decimals(la[k]), _decimals(lo[k])), 7)
         if rows and tk - last_t > gap:
-            rows, committed, tent, missed = [], None, None, []
+            rows, committed, tent, missed, spike = [], None, None, [], None
             reason[k] = "reinit_gap"
         if not rows:
             rows = [k]
@@ -400,19 +421,41 @@ def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, us
             pred[k] = zf + p_seg * (zl - zf)
         else:
             pred[k] = zf
+        if spike is not None:
+            # A rejected spike is held by the resampler until the track reaches it (module
+            # docstring, point 4): while it lies ahead along the predicted velocity, the prediction
+            # is the held spike, and a row nearer the spike than the filter's prediction that has
+            # moved less than half of |v| (t - t_spike) from it (nearer "held" than "flown"), or that
+            # repeats one coordinate of the spike exactly, is a held copy: skipped like a repeated
+            # position, it leaves the filter as it was.
+            vk = mu @ xs[:, [1, 3]]
+            if (spike[0] - pred[k][0]) * vk[0] + (spike[1] - pred[k][1]) * vk[1] > 0.0:
+                pred[k] = spike[:2]
+                d_s = math.hypot(zk[0] - spike[0], zk[1] - spike[1])
+                if d_s < math.hypot(zk[0] - zf[0], zk[1] - zf[1]) and (
+                        d_s < 0.5 * math.hypot(vk[0], vk[1]) * (tk - spike[2])
+                        or (undo is None and (la[k] == spike[3] or lo[k] == spike[4]))):
+                    reason[k] = "repeated_position"
+                    last_t, last_ll = tk, (la[k], lo[k])
+                    if undo is not None:
+                        tent, rows = undo
+                        undo = None
+                    continue
+            spike = undo = None
         # ---- a step faster than MAX_SPEED_MPS from the last row used is not a fix: skipped, and
         # its held copies with it (a forward spike then held, featured/belevingsvlucht); after
         # LOST_AFTER rejected rows in a row, two consistent ones restart the track (relocation)
         if math.hypot(zk[0] - E[j1], zk[1] - N[j1]) > MAX_SPEED_MPS * dt:
             missed.append(k)
             reason[k] = "implausible_speed"
+            spike, undo = (zk[0], zk[1], tk, la[k], lo[k]), None
             if len(missed) >= LOST_AFTER:
                 a_ = missed[-2]
                 if math.hypot(zk[0] - E[a_], zk[1] - N[a_]) <= MAX_SPEED_MPS * (tk - tl[a_]):
                     committed = tent = start(np.array([E[a_], N[a_]]), zk, tk - tl[a_],
                                              dts_sorted[len(dts_sorted) // 2])
                     tc = tk
-                    rows, status, missed = [a_, k], {}, []
+                    rows, status, missed, spike = [a_, k], {}, [], None
                     reason[k] = "reinit_lost"
             last_t, last_ll = tk, (la[k], lo[k])
             continue
@@ -484,6 +527,10 @@ def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, us
             if robust:
                 infl = nis[k] / gamma[1 if held else 2]   # Huber-type: innovation covariance inflated to the gate
                 suspect.add(k)
+                if holds:
+                    # in a stream that holds positions, a gated row may be a spike: if the next
+                    # row is its held copy, the update with it is undone (point 4)
+                    spike, undo = (zk[0], zk[1], tk, la[k], lo[k]), (tent, list(rows))
             else:
                 reason[k] = "gated"
                 continue
@@ -556,13 +603,13 @@ def track_flight(t_s, lat_deg, lon_deg, *, q=Q_MODES, tau=SOJOURN_S, omega=OMEGA
 
 
 def _to_degrees(pred, origin):
-    from .adsb import from_enu
+    """(K, 2) east-north predictions (NaN rows allowed) to degrees, on the ellipsoid like the fixes."""
+    from .adsb import from_enu_horizontal
     K = pred.shape[0]
     lat_p, lon_p = np.full(K, np.nan), np.full(K, np.nan)
     good = np.isfinite(pred[:, 0])
     if good.any():
-        a, b, _ = from_enu(np.column_stack([pred[good], np.zeros(int(good.sum()))]), origin)
-        lat_p[good], lon_p[good] = a, b
+        lat_p[good], lon_p[good] = from_enu_horizontal(pred[good], origin)
     return lat_p, lon_p
 
 

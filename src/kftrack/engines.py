@@ -28,6 +28,12 @@ batch axes (``cov_batch = ()``), so the kernels compute it once per step and app
 every run's mean; ``nis`` and ``loglik`` stay per run. The NumPy engine returns the
 covariances as read-only broadcast views of the one ``(T, n, n)`` sequence.
 
+**Outputs.** Both drivers return the predictions ``x_prior``, ``P_prior``, the posteriors ``x``,
+``P`` and ``nis``, ``loglik`` of every step; with ``priors=False`` neither stores the
+predictions (``x_prior``, ``P_prior`` are None; the JAX engine's compiled loop then has no such
+outputs), which halves the output of the linear filter: writing the results, not the
+arithmetic, bounds the JAX engine on small states.
+
 **Precision.** Both engines compute in float64 unless ``float32`` is chosen explicitly. JAX
 computes in float32 unless ``jax_enable_x64`` is on; the JAX engine does not switch it on for
 you (that would change every other JAX computation in the session): with float64 requested and
@@ -162,7 +168,7 @@ def _step(xp, predict, update, x, P, z, g, pred_args, pk, upd_args, uk, last):
 
 
 def run_sequence(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, pred_args=(), pred_steps=(),
-                 upd_args=(), upd_steps=(), progress: bool = False):
+                 upd_args=(), upd_steps=(), progress: bool = False, priors: bool = True):
     """The NumPy engine: the time loop in Python, one broadcast kernel call per step for all runs.
 
     Parameters
@@ -177,6 +183,8 @@ def run_sequence(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, upda
     pred_args, upd_args : constant array arguments of the kernels.
     pred_steps, upd_steps : array arguments with a leading time axis ``T``; step ``k`` gets ``a[k]``.
     progress : show a tqdm bar over the steps.
+    priors : if False, the predictions are not stored: ``x_prior`` and ``P_prior`` of the result
+        are None (half the output memory of the linear filter).
 
     Returns
     -------
@@ -188,9 +196,9 @@ def run_sequence(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, upda
     dtype = x0.dtype
     x = np.broadcast_to(x0, batch + (n,)).copy()
     P = np.broadcast_to(P0, cov_batch + (n, n)).copy()
-    out_xp = np.empty((T,) + batch + (n,), dtype)
-    out_Pp = np.empty((T,) + cov_batch + (n, n), dtype)
-    out_x, out_P = np.empty_like(out_xp), np.empty_like(out_Pp)
+    out_x = np.empty((T,) + batch + (n,), dtype)
+    out_P = np.empty((T,) + cov_batch + (n, n), dtype)
+    out_xp, out_Pp = (np.empty_like(out_x), np.empty_like(out_P)) if priors else (None, None)
     out_nis = np.full((T,) + batch, np.nan, dtype)
     out_ll = np.full((T,) + batch, np.nan, dtype)
     steps = range(T)
@@ -200,7 +208,8 @@ def run_sequence(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, upda
         steps = tqdm(steps, desc="filter", unit="step")
     xp = _np_namespace()
     for k in steps:
-        out_xp[k], out_Pp[k] = x, P
+        if priors:
+            out_xp[k], out_Pp[k] = x, P
         pk, uk = tuple(a[k] for a in pred_steps), tuple(a[k] for a in upd_steps)
         g = gone[k]
         if g.all():  # nothing to update: predict only
@@ -219,11 +228,16 @@ def run_sequence(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, upda
         out_x[k], out_P[k], out_nis[k], out_ll[k], x, P = _step(xp, predict, update, x, P, zs[k], g, pred_args, pk,
                                                                 upd_args, uk, k == T - 1)
     if cov_batch != batch:  # shared covariances: read-only views of the one sequence
-        out_Pp = np.broadcast_to(out_Pp.reshape((T,) + (1,) * (len(batch) - len(cov_batch)) + out_Pp.shape[1:]),
-                                 (T,) + batch + (n, n))
-        out_P = np.broadcast_to(out_P.reshape(out_Pp.shape[:1] + (1,) * (len(batch) - len(cov_batch))
-                                              + out_P.shape[1:]), (T,) + batch + (n, n))
+        out_Pp, out_P = (None if a is None else _batch_view(a, np, batch, cov_batch) for a in (out_Pp, out_P))
     return FilterResult(out_xp, out_Pp, out_x, out_P, out_nis, out_ll)
+
+
+def _batch_view(P, xp, batch: tuple, cov_batch: tuple):
+    """A shared covariance sequence ``(T, *cov_batch, n, n)`` broadcast to ``(T, *batch, n, n)``
+    (NumPy: a read-only view)."""
+    T, n = P.shape[0], P.shape[-1]
+    return xp.broadcast_to(P.reshape((T,) + (1,) * (len(batch) - len(cov_batch)) + P.shape[1:]),
+                           (T,) + batch + (n, n))
 
 
 def run_closures(zs, x0, P0, batch, row_missing, predict, update, progress: bool = False):
@@ -242,48 +256,75 @@ def _np_namespace():
 # --------------------------------------------------------------------------------------------
 # the JAX engine
 # --------------------------------------------------------------------------------------------
-def _scan_impl(zs, gone, x0, P0, pred_args, pred_steps, upd_args, upd_steps, *, batch, cov_batch, predict, update):
+def _stored_loop(step, carry, T: int):
+    """``lax.scan(step, carry, jnp.arange(T))`` for ``step(k, carry) -> (carry, out)``, with the
+    outputs stored from the loop's carry: the loop carries the output of step ``k - 1`` and stores
+    it at step ``k`` (the last one after the loop). An output that is also used inside the step
+    (a posterior, which the prediction reads) would otherwise let XLA fuse its whole computation a
+    second time into the store (measured on CPU: the Joseph form computed twice per step); a
+    carried value is computed once, and its store is a copy. Same numbers, bit for bit.
+    Returns ``(carry, stacked outputs)``, time first; a ``None`` among the outputs (an empty pytree)
+    has no buffer, is never stored, and stays ``None``."""
+    jax = _jax()
+    jnp, lax, tree = jax.numpy, jax.lax, jax.tree_util
+    put = lambda buf, v, k: lax.dynamic_update_index_in_dim(buf, v, k, 0)  # noqa: E731
+    shapes = jax.eval_shape(step, 0, carry)[1]
+    out0 = tree.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+    bufs = tree.tree_map(lambda s: jnp.zeros((T,) + s.shape, s.dtype), shapes)
+
+    def body(k, state):
+        carry, prev, bufs = state  # at k = 0 the placeholder goes to index -1, clamped to 0, then overwritten
+        bufs = tree.tree_map(lambda b, v: put(b, v, k - 1), bufs, prev)
+        return step(k, carry) + (bufs,)
+
+    carry, last, bufs = lax.fori_loop(0, T, body, (carry, out0, bufs))
+    return carry, tree.tree_map(lambda b, v: put(b, v, T - 1), bufs, last)
+
+
+def _scan_impl(zs, gone, x0, P0, pred_args, pred_steps, upd_args, upd_steps, *, batch, cov_batch, predict, update,
+               priors):
     jax = _jax()
     jnp = jax.numpy
-    n = x0.shape[-1]
+    at = lambda a, k: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa: E731
+    n, T = x0.shape[-1], zs.shape[0]
     x = jnp.broadcast_to(x0, batch + (n,))
     P = jnp.broadcast_to(P0, cov_batch + (n, n))
 
-    def body(carry, inp):
+    def step(k, carry):
         x, P = carry
-        z, g, pk, uk = inp
-        x_post, P_post, nis, ll, x_next, P_next = _step(jnp, predict, update, x, P, z, g, pred_args, pk,
-                                                        upd_args, uk, False)
-        out = (x, P, jnp.broadcast_to(x_post, x.shape), jnp.broadcast_to(P_post, P.shape),
-               jnp.broadcast_to(nis, batch), jnp.broadcast_to(ll, batch))
+        x_post, P_post, nis, ll, x_next, P_next = _step(jnp, predict, update, x, P, at(zs, k), at(gone, k),
+                                                        pred_args, tuple(at(a, k) for a in pred_steps), upd_args,
+                                                        tuple(at(a, k) for a in upd_steps), False)
+        out = ((x, P) if priors else (None, None)) + (  # None: not a loop output, nothing stored
+            jnp.broadcast_to(x_post, x.shape), jnp.broadcast_to(P_post, P.shape),
+            jnp.broadcast_to(nis, batch), jnp.broadcast_to(ll, batch))
         return (jnp.broadcast_to(x_next, x.shape), jnp.broadcast_to(P_next, P.shape)), out
 
-    _, (xp_, Pp, xs, Ps, nis, ll) = jax.lax.scan(body, (x, P), (zs, gone, tuple(pred_steps), tuple(upd_steps)))
-    T = zs.shape[0]
+    _, (xp_, Pp, xs, Ps, nis, ll) = _stored_loop(step, (x, P), T)
     if cov_batch != batch:
-        Pp = jnp.broadcast_to(Pp.reshape((T,) + (1,) * (len(batch) - len(cov_batch)) + Pp.shape[1:]),
-                              (T,) + batch + (n, n))
-        Ps = jnp.broadcast_to(Ps.reshape((T,) + (1,) * (len(batch) - len(cov_batch)) + Ps.shape[1:]),
-                              (T,) + batch + (n, n))
+        Pp, Ps = (None if a is None else _batch_view(a, jnp, batch, cov_batch) for a in (Pp, Ps))
     return xp_, Pp, xs, Ps, nis, ll
 
 
 @lru_cache(maxsize=1)
 def _scan_jit():
     jax = _jax()
-    return jax.jit(_scan_impl, static_argnames=("batch", "cov_batch", "predict", "update"))
+    return jax.jit(_scan_impl, static_argnames=("batch", "cov_batch", "predict", "update", "priors"))
 
 
 def run_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, pred_args=(), pred_steps=(),
-             upd_args=(), upd_steps=(), progress: bool = False):
+             upd_args=(), upd_steps=(), progress: bool = False, priors: bool = True):
     """The JAX engine: the step of :func:`run_sequence` under ``jax.lax.scan``, compiled with
     ``jax.jit`` (once per kernel, options and shapes). Same arguments and result as
     :func:`run_sequence`, as JAX arrays; ``progress`` is ignored (the loop runs compiled).
-    Every step runs the update on all runs and selects the prior where a row is missing."""
+    Every step runs the update on all runs and selects the prior where a row is missing.
+    With ``priors=False`` the predictions are not outputs of the loop (the compiled program
+    neither stores nor returns them; ``x_prior``, ``P_prior`` are None)."""
     from .kalman import FilterResult
 
     out = _scan_jit()(zs, gone, x0, P0, tuple(pred_args), tuple(pred_steps), tuple(upd_args), tuple(upd_steps),
-                      batch=tuple(batch), cov_batch=tuple(cov_batch), predict=predict, update=update)
+                      batch=tuple(batch), cov_batch=tuple(cov_batch), predict=predict, update=update,
+                      priors=bool(priors))
     return FilterResult(*out)
 
 
@@ -302,9 +343,11 @@ def _imm_impl(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch, mixing_w
         x, P = moment_match(mu, xs, Ps)
         return mu, x, P
 
-    def body(carry, inp):
+    at = lambda a, k: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa: E731
+
+    def step(k, carry):
         log_mu, xs, Ps = carry  # (..., r), (r, ..., n), (r, ..., n, n)
-        z, g, Pi, F, Q = inp
+        z, g, Pi, F, Q = (at(a, k) for a in (zs, gone, Pis, Fs, Qs))
         prior = combine(log_mu, xs, Ps)
         u = kf_update(xs, Ps, jnp.where(g[..., None], jnp.zeros((), z.dtype), z)[None], H, R)  # every mode at once
         loglik = jnp.moveaxis(jnp.broadcast_to(u.loglik, (r,) + batch), 0, -1)
@@ -321,7 +364,7 @@ def _imm_impl(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch, mixing_w
         return (jnp.broadcast_to(log_cbar, log_mu.shape), jnp.broadcast_to(xs_n, xs.shape),
                 jnp.broadcast_to(Ps_n, Ps.shape)), out
 
-    _, out = jax.lax.scan(body, (log_mu0, xs0, Ps0), (zs, gone, Pis, Fs, Qs))
+    _, out = _stored_loop(step, (log_mu0, xs0, Ps0), zs.shape[0])
     mu_p, x_p, P_p, mu, x, P, ll, xs, Ps = out
     xs = tuple(xs[:, i] for i in range(r))
     Ps = tuple(Ps[:, i] for i in range(r))

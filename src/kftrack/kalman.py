@@ -28,6 +28,7 @@ Equations (Bar-Shalom, Li & Kirubarajan 2001, §5.2):
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -36,9 +37,10 @@ from ._validate import (as_matrix, as_measurement_sequence, as_vector, broadcast
                         check_state)
 from .engines import (Kernel, PerDt, _jax, check_dtype, check_dts, drive, is_tracer, run_smoother_scan, to_engine,
                       use_jax)
-from .kernels import Update, kf_predict, kf_update, rts_step
+from .kernels import Update, kf_correct, kf_gain, kf_predict, kf_score, kf_update, rts_step
 
-__all__ = ["Update", "FilterResult", "SmootherResult", "predict", "update", "kalman_filter", "rts_smoother"]
+__all__ = ["Update", "FilterResult", "SmootherResult", "predict", "update", "kalman_filter", "rts_smoother",
+           "KalmanStepper"]
 
 
 class FilterResult(NamedTuple):
@@ -46,11 +48,12 @@ class FilterResult(NamedTuple):
 
     ``x_prior[k]``, ``P_prior[k]`` are the predictions for step ``k`` before its measurement
     (``x_prior[0] = x0``); ``x[k]``, ``P[k]`` the estimates after it. ``nis`` and ``loglik`` are
-    NaN at steps without a measurement.
+    NaN at steps without a measurement. ``x_prior`` and ``P_prior`` are None when the filter ran
+    with ``priors=False``.
     """
 
-    x_prior: np.ndarray
-    P_prior: np.ndarray
+    x_prior: np.ndarray | None
+    P_prior: np.ndarray | None
     x: np.ndarray
     P: np.ndarray
     nis: np.ndarray
@@ -174,7 +177,7 @@ def _transitions(F, Q, n: int, T: int, dt, time_varying: bool, what: str = "x0")
 
 
 def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, time_varying: bool = False, progress: bool = False,
-                  dtype=None) -> FilterResult:
+                  dtype=None, priors: bool = True) -> FilterResult:
     r"""Filter a whole measurement sequence: at each step update with ``zs[k]``, then predict.
 
     A measurement row that is all NaN means "no measurement at this step": the filter only
@@ -211,11 +214,16 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, time_varying: bool = False
     dtype : None or ``"float64"`` (default), or ``"float32"``, an explicit choice that loses
         about nine decimal digits (round-off :math:`2^{-24}` relative per operation instead of
         :math:`2^{-53}`). With JAX arrays float64 needs ``jax_enable_x64``.
+    priors : True (default): the result holds the predictions ``x_prior``, ``P_prior``.
+        False: ``x_prior`` and ``P_prior`` are None in the result (:func:`rts_smoother` needs
+        them), and neither engine stores them: half the output memory. ``x``, ``P``, ``nis``,
+        ``loglik`` are the same.
 
     Returns
     -------
     FilterResult
-        priors and posteriors ``(T, ..., n)``, ``(T, ..., n, n)``; ``nis``, ``loglik`` ``(T, ...)``.
+        priors and posteriors ``(T, ..., n)``, ``(T, ..., n, n)`` (priors None with
+        ``priors=False``); ``nis``, ``loglik`` ``(T, ...)``.
         JAX arrays if any input is a JAX array (the JAX engine, :func:`kftrack.engines.run_scan`),
         NumPy arrays otherwise. When no covariance input has batch axes and all runs miss the
         same rows, the covariance recursion is computed once for all runs (it does not depend on
@@ -226,6 +234,8 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, time_varying: bool = False
     ValueError, TypeError
         On bad input, naming the argument.
     """
+    if not isinstance(priors, (bool, np.bool_)):
+        raise TypeError(f"priors must be True or False, got {priors!r}")
     jax_engine = use_jax(zs, x0, P0, F, Q, H, R)
     dt_ = check_dtype(dtype, jax_engine)
     zs_h, gone = as_measurement_sequence(_stand_in(zs, "vector"), "zs")
@@ -253,7 +263,7 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, time_varying: bool = False
     gone_e = to_engine(gone, jax_engine, dt_)
     pred = dict(pred_steps=(F_e, Q_e)) if per_step else dict(pred_args=(F_e, Q_e))
     return drive(jax_engine, zs_e, gone_e, x0_e, P0_e, batch, cov_batch, _KF_PREDICT, _KF_UPDATE,
-                 upd_args=(H_e, R_e), progress=progress, **pred)
+                 upd_args=(H_e, R_e), progress=progress, priors=bool(priors), **pred)
 
 
 _KF_PREDICT = Kernel(kf_predict)
@@ -279,8 +289,9 @@ def rts_smoother(result: FilterResult, F, *, dt=None, time_varying: bool = False
 
     Parameters
     ----------
-    result : the output of :func:`kalman_filter`; JAX arrays run the smoother's JAX engine
-        (:func:`kftrack.engines.run_smoother_scan`) and return JAX arrays.
+    result : the output of :func:`kalman_filter`, with its priors (the default ``priors=True``);
+        JAX arrays run the smoother's JAX engine (:func:`kftrack.engines.run_smoother_scan`) and
+        return JAX arrays.
     F : the transition used by the filter, in the same form: an ``(n, n)`` or ``(..., n, n)``
         matrix; a callable of ``dt`` (with ``dt``); or a ``(T, ..., n, n)`` stack
         (``time_varying=True``).
@@ -294,6 +305,9 @@ def rts_smoother(result: FilterResult, F, *, dt=None, time_varying: bool = False
     """
     if not isinstance(result, FilterResult):
         raise TypeError(f"result must be a FilterResult from kalman_filter, got {type(result).__name__}")
+    if result.x_prior is None or result.P_prior is None:
+        raise ValueError("result has no priors (x_prior, P_prior are None): the smoother needs them; run "
+                         "kalman_filter with priors=True (the default)")
     jax_engine = use_jax(*result)
     n = result.x.shape[-1]
     T = result.x.shape[0]
@@ -326,3 +340,223 @@ def rts_smoother(result: FilterResult, F, *, dt=None, time_varying: bool = False
         Ps = np.broadcast_to(Ps.reshape((T,) + (1,) * len(batch) + (n, n)), (T,) + batch + (n, n))
         G = np.broadcast_to(G.reshape((G.shape[0],) + (1,) * len(batch) + (n, n)), (G.shape[0],) + batch + (n, n))
     return SmootherResult(xs, Ps, G)
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+def _same_bits(a: np.ndarray, b) -> bool:
+    """True if ``b`` is ``a`` or an array with the same shape, memory layout and bytes (so every
+    kernel computes the same bits from it; ``-0.0`` and ``0.0`` differ, NaN equals itself)."""
+    return a is b or (b is not None and a.shape == b.shape and a.strides == b.strides and a.tobytes() == b.tobytes())
+
+
+class KalmanStepper:
+    r"""A linear Kalman filter stepped one call at a time, its inputs validated once.
+
+    :meth:`predict` and :meth:`update` call the kernels of :mod:`kftrack.kernels`
+    (:func:`~kftrack.kernels.kf_predict`, :func:`~kftrack.kernels.kf_gain`,
+    :func:`~kftrack.kernels.kf_correct`, :func:`~kftrack.kernels.kf_score`) without checks:
+    everything but the measurement is validated here, once, and a measurement only for its
+    shape and finiteness. ``update(z)`` then ``predict()`` at every step gives what
+    :func:`kalman_filter` gives for the same data, to the last bit.
+
+    .. math::
+
+        x^- = F x,\quad P^- = F P F^\top + Q;\qquad
+        y = z - H x^-,\quad S = H P^- H^\top + R,\quad K = P^- H^\top S^{-1},\quad x^+ = x^- + K y,
+
+        P^+ = (I - KH) P^- (I - KH)^\top + K R K^\top \;\text{(Joseph form)}
+
+    **Reuse of the covariance recursion.** :math:`P`, :math:`S` and :math:`K` do not depend on
+    the measurements. The stepper keeps the covariance each of its two kernels last started from
+    and what it computed from it; when a step starts from a covariance with exactly the same bits
+    (same shape, layout and bytes), the kernel would compute exactly the same bits again, so the
+    stepper reuses them and computes the mean alone (:math:`Fx`; :math:`z - Hx`,
+    :math:`x + Ky`). With constant :math:`F, Q, H, R` the Riccati recursion reaches such a
+    floating-point fixed point after some tens to a hundred steps (step 104 for the 2-D
+    constant-velocity model of ``benchmarks/filters.py``); from there on a step costs the mean
+    recursion only. A missing measurement changes the covariance, and the full recursion runs
+    again until it repeats. ``reused_from`` says from which update on the covariances are reused.
+
+    Parameters
+    ----------
+    x0 : (..., n) prior mean before the first measurement.
+    P0 : (..., n, n) its covariance, symmetric positive semi-definite.
+    F, Q : (n, n) or (..., n, n) transition matrix and process-noise covariance of one step; or,
+        with ``dt``, callables of the interval such as ``model.F``, ``model.Q`` of
+        :mod:`kftrack.models`, evaluated once at ``dt``.
+    H : (m, n) or (..., m, n) measurement matrix.
+    R : (m, m) or (..., m, m) measurement-noise covariance, positive definite.
+    dt : None, or the sampling interval (s), a scalar ``>= 0``, when ``F`` and ``Q`` are callables.
+    form : ``"joseph"`` (default) or ``"standard"``, the covariance update of :func:`update`.
+
+    Attributes
+    ----------
+    steps : int, the number of :meth:`update` calls so far.
+    reused_from : int or None, the index (0-based, counted in :meth:`update` calls) of the first
+        update of the present unbroken run of updates that reused the covariances; None when the
+        last update computed them or had no measurement.
+
+    Raises
+    ------
+    ValueError, TypeError
+        On bad input, naming the argument.
+
+    Notes
+    -----
+    NumPy only, float64 (for JAX arrays use :func:`kalman_filter`, whose JAX engine compiles the
+    whole loop). Batch axes broadcast as everywhere in :mod:`kftrack`: one stepper may carry many
+    tracks, and the covariances stay shared when no covariance input has batch axes. A missing
+    measurement is ``z=None`` or a ``z`` of NaN, for all tracks at once (a missing measurement in
+    some tracks only: :func:`kalman_filter`). The covariance reuse is exact, never an
+    approximation: where it applies, the arrays are the ones the kernels would return.
+
+    Examples
+    --------
+    >>> from kftrack.models import ConstantVelocity
+    >>> cv = ConstantVelocity(ndim=2, q=0.1)
+    >>> kf = KalmanStepper(np.zeros(4), 100.0 * np.eye(4), cv.F, cv.Q, cv.H, 25.0 * np.eye(2), dt=1.0)
+    >>> kf.update(np.array([1.0, 2.0])); kf.predict()
+    >>> kf.x.shape, kf.P.shape
+    ((4,), (4, 4))
+    """
+
+    def __init__(self, x0, P0, F, Q, H, R, *, dt=None, form: str = "joseph"):
+        form = check_form(form)
+        x0, P0, n = check_state(x0, P0, ("x0", "P0"))
+        F, Q, _ = _transitions(F, Q, n, 1, dt, False)
+        H = as_matrix(H, "H", None, n, origin=f"n = {n} from x0")
+        m = H.shape[-2]
+        R = check_covariance(R, "R", m, positive_definite=True, origin=f"m = {m} from H")
+        batch = broadcast_batch({"x0": x0.shape[:-1], "P0": P0.shape[:-2], "F": F.shape[:-2], "Q": Q.shape[:-2],
+                                 "H": H.shape[:-2], "R": R.shape[:-2]})
+        self._F, self._Q, self._H, self._R = (_read_only(np.array(a, dtype=np.float64)) for a in (F, Q, H, R))
+        self._form, self._m, self._batch, self._z_shape = form, m, batch, batch + (m,)
+        self._x = np.array(np.broadcast_to(x0, batch + (n,)), dtype=np.float64)
+        cov_batch = np.broadcast_shapes(P0.shape[:-2], F.shape[:-2], Q.shape[:-2], H.shape[:-2], R.shape[:-2])
+        self._P = _read_only(np.array(np.broadcast_to(P0, cov_batch + (n, n)), dtype=np.float64))
+        self._pred_in = self._pred_P = None  # the covariance predict() last started from, and its result
+        self._gain_in = self._gain = None  # the covariance update() last started from, and its Gain
+        self._last = None  # (innovation, Gain) of the last update; None after a missing measurement
+        self._scored = None
+        self.steps = 0
+        self.reused_from = None
+
+    # -- the two steps ------------------------------------------------------------------------
+    def predict(self) -> None:
+        r"""Time update :math:`x^- = F x`, :math:`P^- = F P F^\top + Q` (the covariance reused
+        when :attr:`P` has the bits the last computed prediction started from)."""
+        P = self._P
+        if _same_bits(P, self._pred_in):
+            self._pred_in = P
+            self._x = kf_predict(self._x, None, self._F, self._Q)[0]
+            self._P = self._pred_P
+            return
+        self._x, P_next = kf_predict(self._x, P, self._F, self._Q)
+        self._pred_in, self._pred_P = P, _read_only(P_next)
+        self._P = P_next
+
+    def update(self, z) -> None:
+        r"""Measurement update with ``z`` ``(..., m)``: :math:`y = z - Hx`, :math:`x^+ = x + Ky`
+        and :math:`P^+` (Joseph form by default). ``z`` None or all NaN: no measurement, the
+        state is kept and :attr:`nis`, :attr:`loglik` are NaN. A ``z`` of the wrong shape, with
+        inf or only partly NaN raises a ``ValueError`` naming ``z``."""
+        z = self._measurement(z)
+        k = self.steps
+        self.steps = k + 1
+        self._scored = None
+        if z is None:
+            self._last = None
+            self.reused_from = None
+            return
+        P = self._P
+        if _same_bits(P, self._gain_in):
+            g = self._gain
+            if self.reused_from is None:
+                self.reused_from = k
+        else:
+            g = kf_gain(P, self._H, self._R, self._form)
+            for a in (g.S, g.K, g.P):
+                _read_only(a)
+            self._gain = g
+            self.reused_from = None
+        self._gain_in = P
+        self._x, y = kf_correct(self._x, z, self._H, g.K)
+        self._P = g.P
+        self._last = (y, g)
+
+    def _measurement(self, z):
+        """``z`` checked (shape, finite) or None for a missing measurement."""
+        if type(z) is np.ndarray and z.dtype == np.float64 and z.shape == self._z_shape and (
+                all(map(math.isfinite, z.tolist())) if z.ndim == 1 else np.isfinite(z).all()):
+            return z  # the fast path: a float64 array of the right shape, finite
+        if z is None:
+            return None
+        z = as_vector(z, "z", self._m, allow_nan=True)
+        if not _broadcasts_to(z.shape[:-1], self._batch):
+            raise ValueError(f"z must have shape {self._z_shape} (batch axes of the state + (m,)), or broadcast "
+                             f"to it, got shape {z.shape}")
+        nan = np.isnan(z)
+        if nan.all():
+            return None
+        if nan.any():
+            raise ValueError("z is only partly NaN; a missing measurement is z=None or a z of NaN (all tracks "
+                             "at once; for missing measurements in some tracks only use kalman_filter)")
+        if np.isinf(z).any():
+            raise ValueError("z must be finite, or None or NaN for a missing measurement, but it contains inf")
+        return z
+
+    # -- the state and the last update ------------------------------------------------------------
+    @property
+    def x(self) -> np.ndarray:
+        """(..., n) the mean: the posterior after :meth:`update`, the prior after :meth:`predict`."""
+        return self._x
+
+    @property
+    def P(self) -> np.ndarray:
+        """(..., n, n) the covariance that goes with :attr:`x` (read-only)."""
+        return self._P
+
+    @property
+    def y(self):
+        """(..., m) the innovation of the last update; None if it had no measurement (or before any)."""
+        return None if self._last is None else self._last[0]
+
+    @property
+    def S(self):
+        """(..., m, m) the innovation covariance of the last update (None as for :attr:`y`)."""
+        return None if self._last is None else self._last[1].S
+
+    @property
+    def K(self):
+        """(..., n, m) the Kalman gain of the last update (None as for :attr:`y`)."""
+        return None if self._last is None else self._last[1].K
+
+    def _score(self):
+        if self._scored is None:
+            nan = np.full(self._batch, np.nan)[()]
+            self._scored = (nan, nan) if self._last is None else kf_score(*self._last)
+        return self._scored
+
+    @property
+    def nis(self):
+        r"""(...) the NIS :math:`y^\top S^{-1} y` of the last update (computed when read); NaN if it had
+        no measurement (or before any)."""
+        return self._score()[0]
+
+    @property
+    def loglik(self):
+        r"""(...) the log-likelihood :math:`\log N(y; 0, S)` of the last update (computed when read);
+        NaN as for :attr:`nis`."""
+        return self._score()[1]
+
+
+def _broadcasts_to(a: tuple, b: tuple) -> bool:
+    """True if batch shape ``a`` broadcasts to ``b`` (without growing it)."""
+    try:
+        return np.broadcast_shapes(a, b) == b
+    except ValueError:
+        return False

@@ -60,7 +60,8 @@ def _is_np(*arrays) -> bool:
 
 __all__ = [
     "Update", "SigmaPoints", "mm", "mv", "matrix_transpose", "sym", "wrap_angle", "residual", "wrap_state",
-    "kf_predict", "kf_update", "innovation_score", "gain_update", "ekf_predict", "ekf_update",
+    "kf_predict", "kf_update", "Gain", "kf_gain", "kf_correct", "kf_score", "innovation_score", "gain_update",
+    "ekf_predict", "ekf_update",
     "sigma_points", "weighted_mean", "moments", "unscented", "ukf_predict", "ukf_update",
     "logsumexp", "moment_match", "mixing_log_weights", "rts_step", "solve_spd", "logdet_spd",
 ]
@@ -110,7 +111,7 @@ def mm(A, B):
     of ``c`` outer products :math:`C = \sum_p A_{:,p} B_{p,:}` as broadcast elementwise
     products: a compiler fuses them into one loop over the batch, where a batched product of
     tiny matrices is many times slower (measured with XLA on CPU: 30 x for 4 x 4)."""
-    if _is_np(A, B):
+    if type(A) is np.ndarray and type(B) is np.ndarray:  # NumPy (the type test inline: a call less)
         return A @ B
     r, c, k = A.shape[-2], A.shape[-1], B.shape[-1]
     if is_numpy_namespace(array_namespace(A, B)) or max(r, k) > _UNROLL or c > 4 * _UNROLL:
@@ -128,7 +129,7 @@ def mv(A, v):
     the same matrix repeated per batch member give the same bits (the book's "EKF on a linear
     model is the Kalman filter, bit for bit"). On other namespaces (JAX, compiled) a shared
     ``(r, c)`` matrix is applied to the whole batch as one product ``v @ A^T``."""
-    if _is_np(A, v):
+    if type(A) is np.ndarray and type(v) is np.ndarray:  # NumPy (the type test inline: a call less)
         return (A @ v[..., None])[..., 0]
     if A.ndim == 2 and not is_numpy_namespace(array_namespace(A, v)):
         return v @ matrix_transpose(A)
@@ -144,6 +145,8 @@ def matrix_transpose(A):
 
 def sym(A):
     """Symmetric part :math:`(A + A^\\top)/2`."""
+    if type(A) is np.ndarray:  # NumPy: the transpose inline (a call less)
+        return 0.5 * (A + A.swapaxes(-1, -2))
     return 0.5 * (A + matrix_transpose(A))
 
 
@@ -167,11 +170,44 @@ def _cholesky_entries(xp, A):
     return L
 
 
+@lru_cache(maxsize=1)
+def _np_fast():
+    """``(dpotrf, solve, solve1, slogdet)``: SciPy's LAPACK ``dpotrf`` and the gufuncs that
+    ``numpy.linalg.solve``/``slogdet`` call, imported at the first use; ``None`` if NumPy has
+    moved them (then the public ``numpy.linalg`` functions serve)."""
+    try:
+        from numpy.linalg import _umath_linalg as u
+        from scipy.linalg.lapack import dpotrf
+
+        return dpotrf, u.solve, u.solve1, u.slogdet
+    except (ImportError, AttributeError):
+        return None
+
+
+_NP_SPD = "numpy: LAPACK dpotrf factored A"  # the factor "L" of an unbatched float64 NumPy A
+
+
 def _spd_factor(xp, A):
     """The unrolled lower Cholesky factor of ``A`` (nested list, ``_cholesky_entries``) on a
     compiled namespace (JAX) for ``m <= 8``; ``None`` on NumPy or for larger ``A`` (then LAPACK:
     on NumPy one LAPACK call per solve costs less than the unrolled entry-by-entry operations,
-    measured for a single track with ``m = 2``)."""
+    measured for a single track with ``m = 2``).
+
+    NumPy, unbatched float64 ``A`` ``(m, m)``: the marker ``_NP_SPD`` when ``A`` is exactly
+    symmetric (bit for bit) and LAPACK ``dpotrf`` factors it (``info == 0`` and a finite diagonal:
+    numerically positive definite, hence not singular); ``_spd_solve``/``_spd_logdet`` then call the gufuncs of
+    ``numpy.linalg.solve``/``slogdet`` directly, without their Python layer (its error-state
+    context, ~3 us, serves only a singular matrix): the same LAPACK calls on the same arrays, so
+    the same bits. Otherwise (not symmetric, not positive definite, NaN) the result is ``None``:
+    ``numpy.linalg`` as before, with its errors."""
+    if type(A) is np.ndarray:
+        if A.ndim == 2 and A.dtype == np.float64 and A.size and A.tobytes() == A.T.tobytes():
+            fast = _np_fast()
+            if fast is not None:
+                c, info = fast[0](A, lower=1, clean=0)
+                if info == 0 and all(map(math.isfinite, c.diagonal().tolist())):  # inf, NaN: not accepted
+                    return _NP_SPD
+        return None
     if is_numpy_namespace(xp) or A.shape[-1] > _UNROLL:
         return None
     return _cholesky_entries(xp, A)
@@ -179,7 +215,10 @@ def _spd_factor(xp, A):
 
 def _spd_solve(xp, A, L, B):
     """``A^{-1} B`` with the factor ``L`` of ``_spd_factor`` (``linalg.solve`` if ``L`` is None)."""
-    if L is None:
+    if L is _NP_SPD and type(B) is np.ndarray and B.dtype == np.float64:  # numpy.linalg.solve's gufunc
+        fast = _np_fast()
+        return (fast[2] if B.ndim == 1 else fast[1])(A, B, signature="dd->d")
+    if L is None or L is _NP_SPD:
         return xp.linalg.solve(A, B)
     m = A.shape[-1]
     Y = []
@@ -199,6 +238,8 @@ def _spd_solve(xp, A, L, B):
 
 def _spd_logdet(xp, A, L):
     """``log det A`` with the factor ``L`` of ``_spd_factor`` (``linalg.slogdet`` if ``L`` is None)."""
+    if L is _NP_SPD:  # numpy.linalg.slogdet's gufunc (slogdet has no error-state context to skip)
+        return _np_fast()[3](A, signature="d->dd")[1]
     if L is None:
         return xp.linalg.slogdet(A)[1]
     out = xp.log(L[0][0])
@@ -266,21 +307,29 @@ def wrap_state(x, x_angles):
 # linear Kalman filter
 # --------------------------------------------------------------------------------------------
 def kf_predict(x, P, F, Q):
-    r"""Time update :math:`x^- = F x`, :math:`P^- = \operatorname{sym}(F P F^\top + Q)`."""
-    return mv(F, x), sym(mm(mm(F, P), matrix_transpose(F)) + Q)
+    r"""Time update :math:`x^- = F x`, :math:`P^- = \operatorname{sym}(F P F^\top + Q)`.
+
+    With ``P`` None the mean alone: ``(F x, None)`` (the covariance recursion does not depend on
+    the data; :class:`kftrack.kalman.KalmanStepper` skips it once it repeats to the last bit)."""
+    x_next = mv(F, x)
+    if P is None:
+        return x_next, None
+    return x_next, sym(mm(mm(F, P), matrix_transpose(F)) + Q)
 
 
 def innovation_score(y, S):
     r"""NIS :math:`y^\top S^{-1} y` and Gaussian log-likelihood :math:`\log N(y; 0, S)` of an innovation."""
     xp = array_namespace(y, S)
-    return _score(xp, y, S, _spd_factor(xp, S))
+    L = _spd_factor(xp, S)
+    return _score(xp, y, S, L, _spd_logdet(xp, S, L))
 
 
-def _score(xp, y, S, L):
-    """:func:`innovation_score` with the factor ``L`` of ``S`` (``_spd_factor``) already computed."""
+def _score(xp, y, S, L, logdet):
+    """:func:`innovation_score` with the factor ``L`` of ``S`` (``_spd_factor``) and ``log det S``
+    already computed."""
     Sinv_y = _spd_solve(xp, S, L, y[..., None])[..., 0]
     nis = xp.sum(y * Sinv_y, axis=-1)
-    return nis, -0.5 * (nis + _spd_logdet(xp, S, L) + y.shape[-1] * _LOG_2PI)
+    return nis, -0.5 * (nis + logdet + y.shape[-1] * _LOG_2PI)
 
 
 @lru_cache(maxsize=16)
@@ -291,24 +340,69 @@ def _np_eye(n: int, dtype):
     return eye
 
 
-def kf_update(x, P, z, H, R, form: str = "joseph") -> Update:
-    """Measurement update with the Joseph form (``form="joseph"``, symmetrized) or the short form
-    :math:`(I - KH)P` as computed (``form="standard"``, not symmetrized)."""
-    xp = array_namespace(x, P, z, H, R)
+class Gain(NamedTuple):
+    """The covariance part of a measurement update (:func:`kf_gain`), which does not depend on the
+    measurement; every field broadcasts over the batch axes.
+
+    Attributes
+    ----------
+    S : (..., m, m) innovation covariance ``H P H^T + R``.
+    K : (..., n, m) Kalman gain ``P H^T S^{-1}``.
+    P : (..., n, n) posterior covariance, as in :class:`Update`.
+    factor : the factorization of ``S`` that :func:`kf_score` reuses (its form depends on the
+        engine: treat it as opaque).
+    logdet : (...) ``log det S``.
+    """
+
+    S: np.ndarray
+    K: np.ndarray
+    P: np.ndarray
+    factor: object
+    logdet: np.ndarray
+
+
+def kf_gain(P, H, R, form: str = "joseph") -> Gain:
+    r"""The covariance part of the update, which does not depend on the measurement:
+    :math:`S = \operatorname{sym}(H P H^\top + R)`, :math:`K = P H^\top S^{-1}` and
+    :math:`P^+ = \operatorname{sym}((I - KH) P (I - KH)^\top + K R K^\top)` (``form="joseph"``) or
+    the short form :math:`(I - KH)P` as computed (``form="standard"``, not symmetrized), with the
+    factorization and :math:`\log\det S` that :func:`kf_score` uses."""
+    xp = array_namespace(P, H, R)
     _T = matrix_transpose
-    y = z - mv(H, x)
     PHt = mm(P, _T(H))
     S = sym(mm(H, PHt) + R)
     L = _spd_factor(xp, S)  # one factorization of S for the gain, the NIS and the log-likelihood
     K = _T(_spd_solve(xp, S, L, _T(PHt)))  # S symmetric: K^T = S^{-1} H P
-    x_post = x + mv(K, y)
-    eye = _np_eye(x.shape[-1], x.dtype) if xp is np else xp.eye(x.shape[-1], dtype=x.dtype)
+    n = P.shape[-1]
+    eye = _np_eye(n, P.dtype) if xp is np else xp.eye(n, dtype=P.dtype)
     I_KH = eye - mm(K, H)
     if form == "joseph":
         P_post = sym(mm(mm(I_KH, P), _T(I_KH)) + mm(mm(K, R), _T(K)))
     else:  # "standard": the short form (I - KH) P, as computed (not symmetrized)
         P_post = mm(I_KH, P)
-    return Update(x_post, P_post, y, S, K, *_score(xp, y, S, L))
+    return Gain(S, K, P_post, L, _spd_logdet(xp, S, L))
+
+
+def kf_correct(x, z, H, K):
+    r"""The mean part of the update: innovation :math:`y = z - H x`, :math:`x^+ = x + K y`.
+    Returns ``(x_post, y)``."""
+    y = z - mv(H, x)
+    return x + mv(K, y), y
+
+
+def kf_score(y, gain: Gain):
+    r"""NIS :math:`y^\top S^{-1} y` and log-likelihood :math:`\log N(y; 0, S)` of an innovation ``y``,
+    with the factorization and log-determinant of ``S`` kept in ``gain`` (:func:`kf_gain`)."""
+    return _score(array_namespace(y, gain.S), y, gain.S, gain.factor, gain.logdet)
+
+
+def kf_update(x, P, z, H, R, form: str = "joseph") -> Update:
+    """Measurement update: :func:`kf_gain` (the covariances, Joseph form with ``form="joseph"``,
+    symmetrized, or the short form :math:`(I - KH)P` as computed with ``form="standard"``), then
+    :func:`kf_correct` (the mean) and :func:`kf_score` (NIS, log-likelihood)."""
+    g = kf_gain(P, H, R, form)
+    x_post, y = kf_correct(x, z, H, g.K)
+    return Update(x_post, g.P, y, g.S, g.K, *kf_score(y, g))
 
 
 def rts_step(x, P, x_prior_next, P_prior_next, xs_next, Ps_next, F):

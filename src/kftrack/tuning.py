@@ -234,7 +234,7 @@ def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool 
         raise TypeError(f"build must return a tuple (F, Q, H, R), got {type(out).__name__}"
                         + (f" of length {len(out)}" if isinstance(out, tuple) else ""))
     F, Q, H, R = out
-    res = kalman_filter(zs, x0, P0, F, Q, H, R, time_varying=tv)
+    res = kalman_filter(zs, x0, P0, F, Q, H, R, time_varying=tv, priors=False)  # only loglik is needed
     expect = np.broadcast_shapes(tuple(np.shape(zs)[1:-1]), tuple(np.shape(x0)[:-1]))
     if tuple(res.loglik.shape[1:]) != expect:
         raise ValueError(f"build: F, Q, H or R add batch axes {tuple(res.loglik.shape[1:])} to those of zs and x0 "
