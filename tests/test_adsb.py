@@ -155,6 +155,8 @@ def test_horizontal_inverse_lands_on_the_ellipsoid():
         adsb.from_enu_horizontal(np.zeros((3, 3)), origin)
     with pytest.raises(ValueError, match="tol_m"):
         adsb.from_enu_horizontal(en, origin, tol_m=0.0)
+    with pytest.raises(ValueError, match="en must be finite"):
+        adsb.from_enu_horizontal(np.array([[np.inf, 0.0]]), origin)
 
 
 def test_enu_default_origin_and_nan_rows():

@@ -18,7 +18,9 @@ Three sets of flights:
 :func:`load_flight` keeps every row it can read, duplicates and time reversals included
 (ordering and deduplication are the tracker's job), and skips and counts the rows it cannot
 use. :func:`to_enu` / :func:`from_enu` convert between WGS 84 geodetic coordinates (degrees,
-the only place degrees enter) and a local East-North-Up frame in metres (``pymap3d``).
+the only place degrees enter) and a local East-North-Up frame in metres (``pymap3d``);
+:func:`from_enu_horizontal` takes a filter's east-north prediction back to degrees as the point
+on the ellipsoid (height 0, like the fixes), not on the tangent plane.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from typing import NamedTuple
 import numpy as np
 import pymap3d
 
-from ._validate import as_float_array
+from ._validate import as_float_array, positive_scalar
 from .datasets import data_path
 
 __all__ = ["CHAPTER_FLIGHTS", "NOISY_FLIGHTS", "UNSEEN_FLIGHTS", "COLUMNS", "Flight", "load_flight",
@@ -286,8 +288,8 @@ def from_enu_horizontal(en, origin, tol_m: float = 1e-6) -> tuple[np.ndarray, np
     :math:`(e^2 + n^2)/2R`. Taking ``up = 0`` instead (a point on the tangent plane) and
     projecting it down moves it horizontally by about :math:`d^3/2R^2` (12 m at 100 km from the
     origin). The up coordinate is found by the fixed-point iteration
-    :math:`u_{j+1} = \mathrm{up}(\mathrm{geodetic}(e, n, u_j)\,	ext{at height } 0)`, which
-    contracts by about :math:`d/R` per step; it stops when the horizontal residual is below
+    :math:`u_{j+1} = \mathrm{up}(\mathrm{geodetic}(e, n, u_j)\,\text{ at height } 0)`, which
+    contracts by a factor of order :math:`d/R` or smaller per step; it stops when the horizontal residual is below
     ``tol_m``.
 
     Parameters
@@ -306,8 +308,9 @@ def from_enu_horizontal(en, origin, tol_m: float = 1e-6) -> tuple[np.ndarray, np
     arr = as_float_array(en, "en")
     if arr.ndim != 2 or arr.shape[1] != 2:
         raise ValueError(f"en must have shape (K, 2), got shape {arr.shape}")
-    if not (isinstance(tol_m, (int, float)) and not isinstance(tol_m, bool) and tol_m > 0):
-        raise ValueError(f"tol_m must be a number > 0, got {tol_m!r}")
+    if np.any(np.isinf(arr)):
+        raise ValueError("en must be finite or NaN, but it contains inf")
+    tol_m = positive_scalar(tol_m, "tol_m", "m")
     up = np.zeros(arr.shape[0])
     good = np.isfinite(arr).all(axis=1)
     for _ in range(20):
