@@ -706,7 +706,7 @@ def main(argv=None) -> dict:
                 phase[i] = min(phase[i], time.perf_counter() - t0)
         single["stepper_step"].update(reused_from=int(rf), us_before_reuse=1e6 * phase[0] / rf,
                                       us_after_reuse=1e6 * phase[1] / (T_SINGLE - rf))
-        print(f"  stepper: covariances reused from update {rf} on; {1e6 * phase[0] / rf:.1f} us per step before, "
+        print(f"  stepper: covariances reused from update {rf + 1} (1-based) on; {1e6 * phase[0] / rf:.1f} us per step before, "
               f"{1e6 * phase[1] / (T_SINGLE - rf):.1f} us after")
     bound_single = agreement_bound(T_SINGLE, n, kappa_kf)
 
@@ -949,8 +949,9 @@ def target_notes(res) -> dict:
     ks, fs, st, kp_ = (s.get(k, {}) for k in ("kernels_step", "filterpy_step", "stepper_step", "kftrack_step"))
     if st.get("reused_from") is not None and ks and fs and kp_:
         single_why = ("`KalmanStepper` validates its inputs once, at construction, then calls the kernels; the covariance "
-                      "recursion (P, S, K) does not depend on the data and repeats to the last bit from update "
-                      f"{st['reused_from']} of {res['workload']['single_steps']} on, after which a step computes the mean "
+                      "recursion (P, S, K) does not depend on the data; from update "
+                      f"{st['reused_from'] + 1} of {res['workload']['single_steps']} on (the first whose prior "
+                      "covariance has the bits of the one before it) the stepper reuses P, S and K and computes the mean "
                       f"alone, bit for bit what the kernels give: {st['us_before_reuse']:.0f} µs per step before, "
                       f"{st['us_after_reuse']:.0f} µs after ({st['us_per_step']:.0f} µs on average; the public "
                       f"`predict`/`update`, which check every covariance at every call, {kp_['us_per_step']:.0f} µs; "

@@ -4,6 +4,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -377,3 +378,123 @@ def test_figures(baseline, flights, name):
     assert finite and vmax < A.MAX_SPEED_MPS
     assert e <= 0.85 * ef, f"recipe {e:.1f} m vs filterpy {ef:.1f} m"
     assert e <= ec, f"recipe {e:.1f} m vs CV {ec:.1f} m"
+
+
+# ---------------------------------------------------------------- the likelihood and its fit
+def _noisy_cv_flight(K=60, dt=5.0, r0=400.0, q=0.5, held=(20, 35), seed=1518):
+    """A CV track with white N(0, r0 I) position errors, as a flight record; at the rows ``held``
+    the longitude repeats the previous row's (east held by the resampler, north measured)."""
+    from types import SimpleNamespace
+
+    from kftrack.adsb import from_enu
+    rng = np.random.default_rng(seed)
+    x, X = np.array([0.0, 80.0, 0.0, 60.0]), np.empty((K, 4))
+    F = np.eye(4)
+    F[0, 1] = F[2, 3] = dt
+    Lq = np.linalg.cholesky(q * np.array([[dt ** 3 / 3, dt ** 2 / 2], [dt ** 2 / 2, dt]]))
+    for k in range(K):
+        X[k] = x
+        x = F @ x + np.concatenate([Lq @ rng.standard_normal(2), Lq @ rng.standard_normal(2)])
+    z = X[:, [0, 2]] + math.sqrt(r0) * rng.standard_normal((K, 2))
+    lat, lon, _ = from_enu(np.column_stack([z, np.zeros(K)]), (45.0, 7.0, 0.0))
+    lat, lon = np.asarray(lat, float), np.asarray(lon, float)
+    for k in held:
+        lon[k] = lon[k - 1]
+    return SimpleNamespace(t_s=np.arange(K) * dt, lat_deg=lat, lon_deg=lon)
+
+
+def _filterpy_loglik(fl, q, r0):
+    """Sum and count of the innovation log-likelihoods of a one-mode CV filter, by filterpy.
+
+    The recipe's filter with one constant-velocity mode and no report lag, written out: start
+    from rows 0 and 1 (positions with variance r0 + 100 m², the recipe's two-point start),
+    ``R = (r0 + r_q) I`` with r_q the quantisation of 7-decimal positions, and on a row whose
+    longitude is held only the north coordinate is measured.
+    """
+    from filterpy.kalman import KalmanFilter
+    t = fl.t_s
+    z = to_enu(fl.lat_deg, fl.lon_deg, origin=(float(fl.lat_deg[0]), float(fl.lon_deg[0]), 0.0))[0][:, :2]
+    r_start, rq = r0 + 100.0, (111_320.0 * 1e-7) ** 2 / 12.0
+    kf = KalmanFilter(dim_x=4, dim_z=2)
+    dt0 = t[1] - t[0]
+    kf.x = np.array([z[1, 0], (z[1, 0] - z[0, 0]) / dt0, z[1, 1], (z[1, 1] - z[0, 1]) / dt0])
+    blk = r_start * np.array([[1.0, 1.0 / dt0], [1.0 / dt0, 2.0 / dt0 ** 2]])
+    kf.P = np.zeros((4, 4))
+    kf.P[:2, :2] = kf.P[2:, 2:] = blk
+    H2 = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
+    tot = 0.0
+    for k in range(2, t.size):
+        dt = t[k] - t[k - 1]
+        kf.F = np.eye(4)
+        kf.F[0, 1] = kf.F[2, 3] = dt
+        kf.Q = np.zeros((4, 4))
+        kf.Q[:2, :2] = kf.Q[2:, 2:] = q * np.array([[dt ** 3 / 3, dt ** 2 / 2], [dt ** 2 / 2, dt]])
+        kf.predict()
+        if fl.lon_deg[k] == fl.lon_deg[k - 1]:
+            kf.update(z[k, 1:], R=np.array([[r0 + rq]]), H=H2[1:])
+        else:
+            kf.update(z[k], R=(r0 + rq) * np.eye(2), H=H2)
+        tot += float(kf.log_likelihood)
+    return tot, t.size - 2
+
+
+def test_innovation_loglik_equals_filterpy_gaussian_loglik():
+    # One CV mode, no report lag, no gate: the mean of the Gaussian log-likelihoods of the
+    # innovations of a plain Kalman filter (filterpy, an independent implementation), held
+    # coordinates included (the marginal of the measured one).
+    q, r0 = 0.5, 400.0
+    fl = _noisy_cv_flight(q=q, r0=r0)
+    tot, n = _filterpy_loglik(fl, q, r0)
+    one = A.innovation_loglik([fl], (q,), (60.0,), 0.0, r0, omega=(0.0,))
+    # The recipe leaves a held coordinate in the 2-D density with variance 1e12 m² (A._BIG) and
+    # adds back the log of its normalisation: that approximation costs at most
+    # (y^2 + S) / (2 BIG) per held row (|y| < 1 km here: 5e-7); round-off of ~60 updates with
+    # cond(S) ~ 1 is below 1e-12 per term.
+    tol = 2 * 0.5 * (1000.0 ** 2 + 1000.0) / A._BIG + 60 * 1e-12
+    assert abs(one - tot / n) <= tol, (one, tot / n)
+    # Four identical modes: the mixture sum_j c_j N(z; m, S) is N(z; m, S) (round-off only:
+    # the mode probabilities sum to one to a few eps).
+    four = A.innovation_loglik([fl], (q,) * 4, (60.0, 30.0, 90.0, 45.0), 0.0, r0, omega=(0.0,) * 4)
+    assert abs(four - one) <= 1e-9, (four, one)
+    # power: the value depends on the noise model
+    assert abs(A.innovation_loglik([fl], (q,), (60.0,), 0.0, 2 * r0, omega=(0.0,)) - one) > 0.05
+
+
+def test_fit_recipe_increases_the_likelihood_on_a_short_slice(flights):
+    fl = flights["calibration/toulouse"]
+    short = fl._replace(t_s=fl.t_s[:100], lat_deg=fl.lat_deg[:100], lon_deg=fl.lon_deg[:100])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)   # fit_recipe warns if it stops unconverged
+        x = A.fit_recipe([short], xatol=0.1, maxiter=200)   # converges in ~70 iterations
+    assert len(x) == 4 and all(math.isfinite(v) and v > 0 for v in x)
+    start = A.innovation_loglik([short])
+    fitted = A.innovation_loglik([short], (x[0], x[1]) + A.Q_MODES[2:], A.SOJOURN_S, x[2], x[3])
+    # Nelder-Mead never returns a point worse than its start (the start is a simplex vertex);
+    # the gain must be real, far above the 1e-5 nats of its objective tolerance
+    assert fitted >= start + 1e-3, (start, fitted)
+
+
+def test_likelihood_and_fit_errors_name_the_argument():
+    fl = _noisy_cv_flight(K=10, held=())
+    with pytest.raises(TypeError, match="flights"):
+        A.innovation_loglik("calibration/toulouse")
+    with pytest.raises(TypeError, match=r"flights\[0\]"):
+        A.innovation_loglik([np.zeros(5)])
+    with pytest.raises(ValueError, match="flights"):
+        A.fit_recipe([])
+    with pytest.raises(ValueError, match="no row"):
+        A.innovation_loglik([_noisy_cv_flight(K=2, held=())])
+    with pytest.raises(ValueError, match="r_floor"):
+        A.innovation_loglik([fl], r_floor=-1.0)
+    with pytest.raises(ValueError, match="lag_scale"):
+        A.innovation_loglik([fl], lag_scale=math.nan)
+    with pytest.raises(ValueError, match="q, tau and omega"):
+        A.innovation_loglik([fl], q=(1.0, 2.0))
+    with pytest.raises(ValueError, match="x0"):
+        A.fit_recipe([fl], x0=(1.0, 50.0, 1.0))
+    with pytest.raises(ValueError, match="x0"):
+        A.fit_recipe([fl], x0=(1.0, 50.0, 0.0, 200.0))
+    with pytest.raises(ValueError, match="xatol"):
+        A.fit_recipe([fl], xatol=0.0)
+    with pytest.raises(ValueError, match="maxiter"):
+        A.fit_recipe([fl], maxiter=0)

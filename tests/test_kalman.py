@@ -356,23 +356,36 @@ def test_stepper_is_the_kernels_bit_for_bit_and_reuses_the_covariances():
     T = zs.shape[0]
     got = run_stepper(kalman.KalmanStepper(x0, P0, F, Q, H, R), zs)
     x, P = x0, P0  # the unchecked kernels at every step
+    last_in, expected, run = None, [], None  # the oracle of reused_from, from the kernels' own bits
     for k in range(T):
         assert np.array_equal(got["x_prior"][k], x) and np.array_equal(got["P_prior"][k], P), k
         if k == 250:  # missing: no update
             assert np.isnan(got["nis"][k]) and np.isnan(got["loglik"][k])
+            run = None
         else:
+            # the design: update k reuses iff its prior covariance has the bits of the prior of the
+            # last update with a measurement (the inputs of the recursion; F, Q, H, R are constant)
+            repeats = last_in is not None and last_in.tobytes() == P.tobytes()
+            run = (k if run is None else run) if repeats else None
+            last_in = P
             u = kf_update(x, P, zs[k], H, R)
             x, P = u.x, u.P
             assert got["nis"][k] == u.nis and got["loglik"][k] == u.loglik, k
+        expected.append(run)
         assert np.array_equal(got["x"][k], x) and np.array_equal(got["P"][k], P), k
         x, P = kf_predict(x, P, F, Q)
     rf = got["reused_from"]
+    # exactly where the kernels repeat: a stepper that reuses one update too early or too late, or
+    # never, fails here (on this workload the kernels repeat from about update 100 on, before and
+    # after the missing step; where the rounded recursion never repeats, reuse must not happen)
+    assert rf == expected
+    if all(e is None for e in expected[:250]) or all(e is None for e in expected[251:]):
+        pytest.skip("the rounded covariance recursion has no fixed point on this arithmetic")
     first = next(k for k in range(T) if rf[k] is not None)
-    assert first < 250 and all(rf[k] == first for k in range(first, 250))  # engaged, and stays
     assert got["P"][first] is got["P"][first - 1]  # really reused: the same array, not recomputed
     assert rf[250] is None and rf[251] is None  # a missing measurement breaks the fixed point
     again = next(k for k in range(251, T) if rf[k] is not None)
-    assert all(rf[k] == again for k in range(again, T)) and got["P"][-1] is got["P"][again]
+    assert got["P"][-1] is got["P"][again]
 
 
 def test_stepper_equals_kalman_filter_bit_for_bit():
@@ -411,8 +424,28 @@ def test_stepper_missing_measurement_forms_and_read_only_state():
     u = kalman.update(np.zeros(4), np.eye(4), np.array([1.0, 2.0]), H, R)
     assert np.array_equal(s.x, u.x) and s.nis == u.nis and s.loglik == u.loglik
     assert np.array_equal(s.K, u.K) and np.array_equal(s.S, u.S) and np.array_equal(s.y, u.y)
-    with pytest.raises(ValueError, match="read-only"):
-        s.P[0, 0] = 5.0  # the covariance may be shared with the cache: it must not change behind it
+    for name in ("P", "S", "K", "y"):  # P, S, K are shared with the cache; nis, loglik come from y
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(s, name)[0, ...] = 5.0
+
+
+def test_stepper_standard_form_and_copied_inputs():
+    from kftrack.kernels import kf_predict, kf_update
+
+    zs, x0, P0, F, Q, H, R = stepper_data(T=200, missing=60)
+    F_in, P0_in = F.copy(), P0.copy()
+    s = kalman.KalmanStepper(x0, P0_in, F_in, Q, H, R, form="standard")
+    F_in[0, 1] = 7.0  # the caller's arrays change after construction: the stepper has its own copies
+    P0_in[:] = 0.0
+    got = run_stepper(s, zs)
+    x, P = x0, P0
+    for k in range(zs.shape[0]):  # the short form (I - KH)P, as the kernels compute it, to the last bit
+        if k != 60:
+            u = kf_update(x, P, zs[k], H, R, "standard")
+            x, P = u.x, u.P
+            assert got["nis"][k] == u.nis, k
+        assert np.array_equal(got["x"][k], x) and np.array_equal(got["P"][k], P), k
+        x, P = kf_predict(x, P, F, Q)
 
 
 @pytest.mark.parametrize(
@@ -492,3 +525,13 @@ def test_unbatched_numpy_solve_path_keeps_the_bits_and_the_errors():
             kernels.solve_spd(singular, B)
     for bad in (np.full((2, 2), np.nan), np.array([[np.inf, 1.0], [1.0, 1.0]])):  # dpotrf says info = 0 here
         assert kernels._spd_factor(np, bad) is None
+    # the other cases keep numpy.linalg itself: a batch of matrices, float32, a 1-D right-hand side
+    S = random_spd(rng, 3)
+    S = 0.5 * (S + S.T)
+    Sb = np.stack([S, 2.0 * S])
+    assert kernels._spd_factor(np, Sb) is None and kernels._spd_factor(np, S.astype(np.float32)) is None
+    b = rng.normal(size=3)
+    assert np.array_equal(kernels.solve_spd(S, b), np.linalg.solve(S, b))
+    B32 = rng.normal(size=(3, 2)).astype(np.float32)
+    assert np.array_equal(kernels.solve_spd(S, B32), np.linalg.solve(S, B32))
+    assert np.array_equal(kernels.logdet_spd(Sb), np.linalg.slogdet(Sb)[1])

@@ -31,8 +31,9 @@ covariances as read-only broadcast views of the one ``(T, n, n)`` sequence.
 **Outputs.** Both drivers return the predictions ``x_prior``, ``P_prior``, the posteriors ``x``,
 ``P`` and ``nis``, ``loglik`` of every step; with ``priors=False`` neither stores the
 predictions (``x_prior``, ``P_prior`` are None; the JAX engine's compiled loop then has no such
-outputs), which halves the output of the linear filter: writing the results, not the
-arithmetic, bounds the JAX engine on small states.
+outputs): per run and step the linear filter then writes n + n² + 2 numbers instead of
+2n + 2n² + 2 (per-run covariances). Writing the results, not the arithmetic, bounds the JAX
+engine on small states.
 
 **Precision.** Both engines compute in float64 unless ``float32`` is chosen explicitly. JAX
 computes in float32 unless ``jax_enable_x64`` is on; the JAX engine does not switch it on for
@@ -184,7 +185,7 @@ def run_sequence(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, upda
     pred_steps, upd_steps : array arguments with a leading time axis ``T``; step ``k`` gets ``a[k]``.
     progress : show a tqdm bar over the steps.
     priors : if False, the predictions are not stored: ``x_prior`` and ``P_prior`` of the result
-        are None (half the output memory of the linear filter).
+        are None (n + n² fewer numbers per run and step for the linear filter).
 
     Returns
     -------

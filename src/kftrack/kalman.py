@@ -216,8 +216,10 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, time_varying: bool = False
         :math:`2^{-53}`). With JAX arrays float64 needs ``jax_enable_x64``.
     priors : True (default): the result holds the predictions ``x_prior``, ``P_prior``.
         False: ``x_prior`` and ``P_prior`` are None in the result (:func:`rts_smoother` needs
-        them), and neither engine stores them: half the output memory. ``x``, ``P``, ``nis``,
-        ``loglik`` are the same.
+        them), and neither engine stores them: with per-run covariances nearly half the output
+        memory (``n + n²`` of the ``2n + 2n² + 2`` numbers per run and step; with shared
+        covariances, which the NumPy engine stores once, the ``n`` of ``x_prior`` per run and step).
+        ``x``, ``P``, ``nis``, ``loglik`` are the same (NumPy engine: the same bits).
 
     Returns
     -------
@@ -375,11 +377,17 @@ class KalmanStepper:
     and what it computed from it; when a step starts from a covariance with exactly the same bits
     (same shape, layout and bytes), the kernel would compute exactly the same bits again, so the
     stepper reuses them and computes the mean alone (:math:`Fx`; :math:`z - Hx`,
-    :math:`x + Ky`). With constant :math:`F, Q, H, R` the Riccati recursion reaches such a
-    floating-point fixed point after some tens to a hundred steps (step 104 for the 2-D
-    constant-velocity model of ``benchmarks/filters.py``); from there on a step costs the mean
-    recursion only. A missing measurement changes the covariance, and the full recursion runs
-    again until it repeats. ``reused_from`` says from which update on the covariances are reused.
+    :math:`x + Ky`). What is compared is the input of the covariance recursion, not its output:
+    :math:`F, Q, H, R` and ``form`` are fixed at construction (private read-only copies), so the
+    covariance a step starts from is its only input that can change. With constant matrices the
+    rounded Riccati recursion typically settles on such a floating-point fixed point after some
+    tens to a hundred steps (on the 2-D constant-velocity workload of ``benchmarks/filters.py``
+    the benchmark reports the update, about the hundredth); from there on a step costs the mean
+    recursion only. It need not settle (the rounded recursion may end in a short cycle instead,
+    or :math:`P` may grow without bound for an undetectable model): then every step runs the
+    full recursion, with the same results. A missing measurement changes the covariance, and
+    the full recursion runs again until it repeats. ``reused_from`` says from which update on
+    the covariances are reused.
 
     Parameters
     ----------
@@ -413,6 +421,11 @@ class KalmanStepper:
     measurement is ``z=None`` or a ``z`` of NaN, for all tracks at once (a missing measurement in
     some tracks only: :func:`kalman_filter`). The covariance reuse is exact, never an
     approximation: where it applies, the arrays are the ones the kernels would return.
+    :attr:`P`, :attr:`S`, :attr:`K` and :attr:`y` are read-only because the first three are
+    shared with the cache (and :attr:`nis`, :attr:`loglik` are computed from :attr:`y` when
+    read): copy them to change them; setting their ``writeable`` flag back defeats the check.
+    The inputs are copied at construction, so changing the caller's arrays afterwards has no
+    effect.
 
     Examples
     --------
@@ -522,8 +535,13 @@ class KalmanStepper:
 
     @property
     def y(self):
-        """(..., m) the innovation of the last update; None if it had no measurement (or before any)."""
-        return None if self._last is None else self._last[0]
+        """(..., m) the innovation of the last update (read-only); None if it had no measurement (or
+        before any)."""
+        if self._last is None:
+            return None
+        y = self._last[0]
+        y.flags.writeable = False  # nis and loglik are computed from it when read
+        return y
 
     @property
     def S(self):

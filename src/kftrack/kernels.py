@@ -189,7 +189,7 @@ _NP_SPD = "numpy: LAPACK dpotrf factored A"  # the factor "L" of an unbatched fl
 
 def _spd_factor(xp, A):
     """The unrolled lower Cholesky factor of ``A`` (nested list, ``_cholesky_entries``) on a
-    compiled namespace (JAX) for ``m <= 8``; ``None`` on NumPy or for larger ``A`` (then LAPACK:
+    compiled namespace (JAX) for ``m <= 8``; on NumPy (see below) or for larger ``A`` no factor (LAPACK:
     on NumPy one LAPACK call per solve costs less than the unrolled entry-by-entry operations,
     measured for a single track with ``m = 2``).
 
