@@ -634,10 +634,7 @@ def main(argv=None) -> dict:
             x, P = predict(u.x, u.P, F, Q)
         return out
 
-    def filterpy_steps():
-        from filterpy.kalman import KalmanFilter
-        f = KalmanFilter(dim_x=4, dim_z=2)
-        f.x, f.P, f.F, f.Q, f.H, f.R = x0.copy(), P0.copy(), F, Q, H, R
+    def object_steps(f):  # a filter object with update(z), predict() and x: filterpy's and kftrack's stepper
         out = np.empty((T_SINGLE, 4))
         for k in range(T_SINGLE):
             f.update(z1[k])
@@ -645,13 +642,15 @@ def main(argv=None) -> dict:
             f.predict()
         return out
 
+    def filterpy_steps():
+        from filterpy.kalman import KalmanFilter
+        f = KalmanFilter(dim_x=4, dim_z=2)
+        f.x, f.P, f.F, f.Q, f.H, f.R = x0.copy(), P0.copy(), F, Q, H, R
+        return object_steps(f)
+
     def stepper_steps():  # validated once; the kernels, the covariances reused once they repeat to the last bit
         s = KalmanStepper(x0, P0, F, Q, H, R)
-        out = np.empty((T_SINGLE, 4))
-        for k in range(T_SINGLE):
-            s.update(z1[k])
-            out[k] = s.x
-            s.predict()
+        out = object_steps(s)
         stepper_steps.reused_from = s.reused_from
         return out
 

@@ -110,6 +110,16 @@ def _agreement_bound(fs, fn, build, zs, x0, P0) -> float:
     return 2 * np.linalg.norm(np.linalg.inv(-fn.hessian), 2) * (g_s + g_n)
 
 
+def _fit_both(start, build, zs, x0, P0):
+    """Both optimisers from ``start``: (scipy fit, Newton fit, |phi_scipy - phi_newton|, its bound);
+    both must converge to a maximum (negative definite exact Hessian)."""
+    fs = fit_noise(start, build, zs, x0, P0, method="scipy", gtol=GTOL)
+    fn = fit_noise(start, build, zs, x0, P0, method="newton", gtol=GTOL)
+    assert fs.converged and fn.converged
+    assert np.all(np.linalg.eigvalsh(fn.hessian) < 0)  # a maximum
+    return fs, fn, np.linalg.norm(fs.log_params - fn.log_params), _agreement_bound(fs, fn, build, zs, x0, P0)
+
+
 def _hessian_by_differences(f, phi, h, delta):
     """Second central differences of f at phi with step h, and a bound on their error:
     truncation ~ c h^2 is estimated by |D(h) - D(2h)| = 3 c h^2 (so 2 |D(h) - D(2h)| covers it
@@ -136,13 +146,8 @@ def test_scipy_and_jax_newton_reach_the_same_optimum_near_the_truth():
     # 240 steps, as many as the flight segment below: the Newton fits share one compilation
     zs, build, x0, P0 = _simulate(240, seed=7)
     start = np.log([1.0, 1.0])
-    fs = fit_noise(start, build, zs, x0, P0, method="scipy", gtol=GTOL)
-    fn = fit_noise(start, build, zs, x0, P0, method="newton", gtol=GTOL)
-    assert fs.converged and fn.converged
+    fs, fn, diff, tol = _fit_both(start, build, zs, x0, P0)
     assert np.max(np.abs(fs.gradient)) <= GTOL and np.max(np.abs(fn.gradient)) <= GTOL
-    assert np.all(np.linalg.eigvalsh(fn.hessian) < 0)  # a maximum
-    tol = _agreement_bound(fs, fn, build, zs, x0, P0)
-    diff = np.linalg.norm(fs.log_params - fn.log_params)
     print(f"scipy: q = {fs.params[0]:.4f}, r = {fs.params[1]:.4f} in {fs.iterations} iterations, "
           f"{fs.evaluations} evaluations; newton: q = {fn.params[0]:.4f}, r = {fn.params[1]:.4f} in "
           f"{fn.iterations} steps, {fn.evaluations} evaluations; |d log theta| = {diff:.1e} <= {tol:.1e}")
@@ -193,12 +198,7 @@ def test_adsb_flight_scipy_and_newton_agree():
     x0 = np.array([zs[0, 0], v0[0], zs[0, 1], v0[1]])
     P0 = np.diag([1e4, 1e3, 1e4, 1e3])
     start = np.log([1.0, 100.0])
-    fs = fit_noise(start, build, zs, x0, P0, method="scipy", gtol=GTOL)
-    fn = fit_noise(start, build, zs, x0, P0, method="newton", gtol=GTOL)
-    assert fs.converged and fn.converged
-    assert np.all(np.linalg.eigvalsh(fn.hessian) < 0)
-    tol = _agreement_bound(fs, fn, build, zs, x0, P0)
-    diff = np.linalg.norm(fs.log_params - fn.log_params)
+    fs, fn, diff, tol = _fit_both(start, build, zs, x0, P0)
     print(f"{FLIGHT}: scipy q = {fs.params[0]:.3f} m^2/s^3, r = {fs.params[1]:.2f} m^2 ({fs.iterations} "
           f"iterations, {fs.evaluations} evaluations); newton q = {fn.params[0]:.3f}, r = {fn.params[1]:.2f} "
           f"({fn.iterations} steps, {fn.evaluations} evaluations); |d log theta| = {diff:.1e} <= {tol:.1e}")
