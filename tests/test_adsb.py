@@ -109,7 +109,7 @@ def test_loader_skips_and_counts_bad_rows_by_reason(tmp_path, monkeypatch):
 def test_loader_file_level_errors(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="name must be one of.*calibration/toulouse"):
         adsb.load_flight("calibration/atlantis")
-    with pytest.raises(ValueError, match="name"):
+    with pytest.raises(TypeError, match="name must be a flight name .* or a file path"):
         adsb.load_flight(3)
     monkeypatch.setenv("KFTRACK_DATA", str(tmp_path))
     _write(tmp_path, "calibration/munich", ["t,lat,lon", "1,2,3"])

@@ -15,9 +15,10 @@ Three sets of flights:
   missing fields), for the robustness of a tracking recipe;
 - :data:`UNSEEN_FLIGHTS`: held out; a recipe is judged on them and nothing may be tuned on them.
 
-:func:`load_flight` keeps every row it can read, duplicates and time reversals included
-(ordering and deduplication are the tracker's job), and skips and counts the rows it cannot
-use. :func:`to_enu` / :func:`from_enu` convert between WGS 84 geodetic coordinates (degrees,
+:func:`load_flight` reads a bundled flight by name or a user's own file in the same format by
+path; it keeps every row it can read, duplicates and time reversals included (ordering and
+deduplication are the tracker's job), and skips and counts the rows it cannot use.
+:func:`to_enu` / :func:`from_enu` convert between WGS 84 geodetic coordinates (degrees,
 the only place degrees enter) and a local East-North-Up frame in metres (``pymap3d``);
 :func:`from_enu_horizontal` takes a filter's east-north prediction back to degrees as the point
 on the ellipsoid (height 0, like the fixes), not on the tangent plane.
@@ -26,6 +27,9 @@ from __future__ import annotations
 
 import gzip
 import math
+import os
+import zlib
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -67,7 +71,7 @@ class Flight(NamedTuple):
     Attributes
     ----------
     name : str
-        The flight's name, e.g. ``"calibration/toulouse"``.
+        The flight's name, e.g. ``"calibration/toulouse"``, or the path of a user's file.
     t_s : numpy.ndarray
         Time, unix seconds (not necessarily increasing or unique).
     lat_deg, lon_deg : numpy.ndarray
@@ -98,12 +102,14 @@ class Flight(NamedTuple):
 
 
 def _parse_row(line: str) -> tuple[tuple[float, ...] | None, str | None]:
-    """The values of one data line, or ``(None, reason)``."""
+    """The values of one data line, or ``(None, reason)``; an empty optional cell is NaN."""
     fields = line.split(",")
     if len(fields) != len(COLUMNS):
         return None, f"wrong number of fields (expected {len(COLUMNS)})"
+    if not all(f.strip() for f in fields[:3]):
+        return None, "missing time, latitude or longitude"
     try:
-        values = tuple(float(f) for f in fields)
+        values = tuple(float(f) if f.strip() else math.nan for f in fields)
     except ValueError:
         return None, "non-numeric field"
     t, lat, lon = values[:3]
@@ -120,54 +126,94 @@ def _parse_row(line: str) -> tuple[tuple[float, ...] | None, str | None]:
     return values, None
 
 
-def load_flight(name: str) -> Flight:
+def _flight_file(name) -> tuple[str, Path, bool]:
+    """``(flight name, file path, gzipped)`` of a bundled flight name or a user's file path."""
+    if isinstance(name, os.PathLike) or (isinstance(name, str) and name not in _ALL
+                                         and name.lower().endswith((".csv", ".csv.gz"))):
+        path = Path(name)
+        if not path.name.lower().endswith((".csv", ".csv.gz")):
+            raise ValueError(f"name must be a flight file ending in .csv or .csv.gz, got {str(name)!r}")
+        if not path.is_file():
+            raise FileNotFoundError(f"name: no flight file {str(path)!r}")
+        return str(name), path, path.name.lower().endswith(".gz")
+    if not isinstance(name, str):
+        raise TypeError(f"name must be a flight name (str) or a file path (str or os.PathLike), "
+                        f"got {type(name).__name__}")
+    if name not in _ALL:
+        raise ValueError(f"name must be one of the ADS-B flights {', '.join(_ALL)}, or the path of a .csv or "
+                         f".csv.gz file; got {name!r}")
+    return name, data_path(f"adsb/{name}.csv.gz"), True
+
+
+def load_flight(name: str | os.PathLike) -> Flight:
     """Load one recorded flight, skipping and counting the rows it cannot use.
 
     Parameters
     ----------
-    name : str
-        ``"<group>/<name>"``, one of :data:`CHAPTER_FLIGHTS`, :data:`NOISY_FLIGHTS` or
-        :data:`UNSEEN_FLIGHTS`. The file is ``data/adsb/<name>.csv.gz``, found with
-        :func:`kftrack.datasets.data_path`.
+    name : str or os.PathLike
+        Either ``"<group>/<name>"``, one of :data:`CHAPTER_FLIGHTS`, :data:`NOISY_FLIGHTS` or
+        :data:`UNSEEN_FLIGHTS` (the file ``data/adsb/<name>.csv.gz``, found with
+        :func:`kftrack.datasets.data_path`), or the path of a user's own file (an
+        ``os.PathLike``, or a str ending in ``.csv`` or ``.csv.gz``; ``.gz`` means gzipped).
+
+        File format (UTF-8 text): any number of lines starting with ``#`` (comments), then the
+        header line ``t_s,lat_deg,lon_deg,alt_m,groundspeed_mps,track_deg,vertical_rate_mps``
+        (:data:`COLUMNS`), then one record per line, comma-separated, in these units: unix
+        seconds, WGS 84 degrees, metres, m/s, degrees clockwise from north, m/s up. ``nan`` or an
+        empty cell is a missing value; time, latitude and longitude are required.
 
     Returns
     -------
     Flight
-        The kept rows in file order (shape ``(K,)`` per column). A row is skipped, and counted
-        in ``Flight.skipped`` under its reason, if it has the wrong number of fields, a
-        non-numeric field, a non-finite time, latitude or longitude, a latitude outside
-        [-90, 90] or longitude outside [-180, 180] degrees, or an infinite value in another
-        column (which :func:`to_enu` would refuse). NaN in the other columns (a missing field)
-        is kept. Duplicated and decreasing times are kept. Undecodable bytes become U+FFFD and
-        make the row non-numeric. No bad row raises.
+        The kept rows in file order (shape ``(K,)`` per column); ``Flight.name`` is ``name``
+        (as a str). A row is skipped, and counted in ``Flight.skipped`` under its reason, if it
+        has the wrong number of fields, a non-numeric field, a missing (empty) or non-finite
+        time, latitude or longitude, a latitude outside [-90, 90] or longitude outside
+        [-180, 180] degrees, or an infinite value in another column (which :func:`to_enu`
+        would refuse). A missing field in the other columns (empty or ``nan``) is kept as NaN.
+        Duplicated and decreasing times are kept. Undecodable bytes become U+FFFD and make the
+        row non-numeric. No bad row raises.
 
     Raises
     ------
+    TypeError
+        If ``name`` is neither a str nor an ``os.PathLike``.
     ValueError
-        If ``name`` is not a known flight (the message lists them) or the file's header is not
-        the expected column list.
+        If ``name`` is not a known flight nor a ``.csv``/``.csv.gz`` path (the message lists the
+        flights); or, naming the file, if its header is not the expected column list, or a
+        ``.gz`` file is not gzip, is corrupt, or is truncated (no partial flight is returned).
+    FileNotFoundError
+        If a user's path does not exist.
     """
-    if not isinstance(name, str) or name not in _ALL:
-        raise ValueError(f"name must be one of the ADS-B flights {', '.join(_ALL)}; got {name!r}")
-    path = data_path(f"adsb/{name}.csv.gz")
+    name, path, gzipped = _flight_file(name)
     rows: list[tuple[float, ...]] = []
     skipped: dict[str, int] = {}
     header_seen = False
-    with gzip.open(path, "rt", encoding="utf-8", errors="replace", newline="") as fh:
-        for raw in fh:
-            line = raw.strip()
-            if not line or line.startswith("#"):
-                continue
-            if not header_seen:
-                if tuple(line.split(",")) != COLUMNS:
-                    raise ValueError(f"{path}: header must be {','.join(COLUMNS)!r}, got {line!r}")
-                header_seen = True
-                continue
-            values, reason = _parse_row(line)
-            if values is None:
-                skipped[reason] = skipped.get(reason, 0) + 1
-            else:
-                rows.append(values)
+    opener = gzip.open if gzipped else open
+    try:
+        with opener(path, "rt", encoding="utf-8", errors="replace", newline="") as fh:
+            for raw in fh:
+                line = raw.strip()
+                if not line or line.startswith("#"):
+                    continue
+                if not header_seen:
+                    if tuple(line.split(",")) != COLUMNS:
+                        raise ValueError(f"{path}: header must be {','.join(COLUMNS)!r}, got {line[:200]!r}")
+                    header_seen = True
+                    continue
+                values, reason = _parse_row(line)
+                if values is None:
+                    skipped[reason] = skipped.get(reason, 0) + 1
+                else:
+                    rows.append(values)
+    except gzip.BadGzipFile as exc:
+        raise ValueError(f"{path}: not a valid gzip file ({exc}); a flight file ending in .gz must be "
+                         "gzip-compressed CSV") from exc
+    except EOFError as exc:
+        raise ValueError(f"{path}: truncated gzip stream (the file ends before the end-of-stream marker, "
+                         f"after {len(rows)} data rows); no partial flight is returned") from exc
+    except zlib.error as exc:
+        raise ValueError(f"{path}: corrupt gzip data ({exc})") from exc
     if not header_seen:
         raise ValueError(f"{path}: no header line {','.join(COLUMNS)!r}")
     table = np.array(rows, dtype=float).reshape(len(rows), len(COLUMNS))

@@ -20,6 +20,7 @@ Layer: worlds (uses :mod:`kftrack.sensors.gps` for NMEA and geodesy; reads/write
 from __future__ import annotations
 
 import datetime as _dt
+import os
 from pathlib import Path
 from typing import NamedTuple
 
@@ -298,11 +299,16 @@ def _directory(directory) -> Path:
     return Path(directory) if directory is not None else data_dir() / "gps_track"
 
 
-def write_track_logs(directory=None, seed: int = SEED) -> list[Path]:
+def write_track_logs(directory: str | os.PathLike, seed: int = SEED) -> list[Path]:
     """Generate the logs with ``numpy.random.default_rng(seed)`` and write one file per receiver
-    (CR LF line ends, as receivers send them) into ``directory`` (default ``data/gps_track``).
-    Returns the paths. The committed files are ``write_track_logs()`` (checked by a unit test)."""
-    folder = _directory(directory)
+    (CR LF line ends, as receivers send them) into ``directory``, created if missing. The folder
+    is required, never the installed package's data: the committed files are
+    ``write_track_logs("data/gps_track")`` from the repository's root (checked by a unit test).
+    Returns the paths."""
+    if not isinstance(directory, (str, os.PathLike)):
+        raise TypeError(f"directory must be the folder to write into (str or os.PathLike), "
+                        f"got {type(directory).__name__}")
+    folder = Path(directory)
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for name, lines in track_log_lines(np.random.default_rng(seed)).items():
@@ -340,7 +346,8 @@ def load_track_logs(directory=None, receivers=RECEIVERS, speed: float = WALK_SPE
     for rec in receivers:
         path = folder / rec.filename
         if not path.exists():
-            raise FileNotFoundError(f"log {path} not found; run kftrack.gpstrack.write_track_logs() (data/README.md)")
+            raise FileNotFoundError(f"log {path} not found; write it with kftrack.gpstrack.write_track_logs(folder) "
+                                    "(data/README.md)")
         fixes, report = read_nmea_log(path)
         reports[rec.name] = report
         n_runs = int(round((fixes.time.max() - _START) // _RUN_SPACING)) + 1 if len(fixes.time) else 0

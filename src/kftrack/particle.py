@@ -38,7 +38,9 @@ the weights per mode.
 Shapes: particles ``(..., N, n)``, log weights ``(..., N)``; leading axes ``...`` are independent
 filters, so one call runs every Monte Carlo run. Sequences are time first, ``(T, ..., m)``, and
 ``x0, P0`` is the prior of step 0 as in :func:`kftrack.kalman.kalman_filter`. Every function
-that draws takes ``rng``, a ``numpy.random.Generator``.
+that draws takes ``rng``, a ``numpy.random.Generator``. The user's functions (``f``, ``h``, a
+model's ``f``) are checked right after every call: NaN or inf in their output raises
+``ValueError`` naming the function and the step.
 """
 from __future__ import annotations
 
@@ -113,6 +115,22 @@ def _method(method) -> str:
 
 def _angles(angle_components, m: int) -> tuple[int, ...]:
     return check_angles(angle_components, m)
+
+
+def _user(fn, name: str, k: int | None, *args) -> np.ndarray:
+    """``fn(*args)``, a user's function (``f``, ``h``, a model's ``f``), checked at the boundary
+    between the user's code and the filter: a NaN or inf in its output raises ``ValueError``
+    naming the function and the step ``k`` (instead of a misleading failure steps later)."""
+    out = fn(*args)
+    ok = np.isfinite(out)
+    if not np.all(ok):
+        bad = ~ok.all(axis=-1) if ok.ndim else ~ok
+        what = "NaN" if np.isnan(out).any() else "inf"
+        at = "" if k is None else f" at step {k}"
+        raise ValueError(f"{name} returned {what}{at} for {int(np.sum(bad))} of {bad.size} particles; it must "
+                         f"return finite values for every state it is given (e.g. no sqrt or log of a "
+                         f"negative number)")
+    return out
 
 
 def _per_step(fn, name: str, count: int) -> list:
@@ -244,7 +262,7 @@ def propagate(particles, f: Vector, Q, rng: np.random.Generator) -> np.ndarray:
     check_rng(rng)
     X = as_vector(particles, "particles")
     Q = check_covariance(Q, "Q", X.shape[-1])
-    return f(X) + _draw(rng, _sqrt_psd(Q), X.shape[:-1])
+    return _user(f, "f", None, X) + _draw(rng, _sqrt_psd(Q), X.shape[:-1])
 
 
 def reweight(log_weights, loglik) -> tuple[np.ndarray, np.ndarray]:
@@ -377,7 +395,7 @@ def _reweight(lw, X, z, gone, h, Wc, angles, k):
     """Bayes' rule on the log weights ``lw`` (..., N) of particles ``X`` (..., N, n) for the
     measurement ``z`` (..., m); runs with ``gone`` (no measurement) keep their weights.
     Returns the normalised log weights and the log evidence (..., )."""
-    ll = _loglik(np.where(gone[..., None], 0.0, z)[..., None, :], h(X), Wc, angles)
+    ll = _loglik(np.where(gone[..., None], 0.0, z)[..., None, :], _user(h, "h", k, X), Wc, angles)
     lw_new, ev = rs._normalize(lw + np.where(gone[..., None], 0.0, ll))
     if np.any(np.isneginf(ev) | np.isnan(ev)):
         raise ValueError(f"every particle of a cloud has zero likelihood at step {k} (the measurement is "
@@ -412,14 +430,20 @@ def bootstrap_filter(zs, x0, P0, f, Q, h, R, N: int, rng: np.random.Generator, *
     regularized : jitter resampled clouds with the kernel :math:`N(0, h^2 P_k)` after shrinking them
         towards their mean by :math:`\sqrt{1 - h^2}` (:func:`regularize` with ``mean``; Liu & West 2001).
     bandwidth : kernel bandwidth ``h`` (default :func:`kernel_bandwidth`).
-    initial_size : draw this many particles from the prior at step 0 and resample them down to
-        ``N`` after its update (default ``N``). A cheap cure for a first measurement much more
+    initial_size : draw this many particles (``>= N``) from the prior at step 0 and resample them
+        down to ``N`` after its update (default ``N``). A cheap cure for a first measurement much more
         informative than the prior, which would otherwise leave a handful of effective
         particles; it is still sampling-importance-resampling, with more samples at one step.
 
     Returns
     -------
     ParticleResult
+
+    Raises
+    ------
+    ValueError
+        Naming the function and the step, if ``f`` or ``h`` returns NaN or inf (checked after
+        every call); if every particle of a cloud has zero likelihood.
     """
     zs, missing, x0, P0, R, N, n, m, batch, method, threshold, angles = _common(
         zs, x0, P0, R, N, rng, method, threshold, angle_components)
@@ -430,6 +454,9 @@ def bootstrap_filter(zs, x0, P0, f, Q, h, R, N: int, rng: np.random.Generator, *
     LQ = _sqrt_psd(Q)
     Wc = _chol_inv(R)
     N0 = N if initial_size is None else _count(initial_size, "initial_size")
+    if N0 < N:
+        raise ValueError(f"initial_size must be at least N = {N} (the particles drawn at step 0, resampled down "
+                         f"to N after its update), got {initial_size!r}")
     X = gaussian_particles(np.broadcast_to(x0, batch + (n,)), P0, N0, rng)
     lw = np.full(batch + (N0,), -np.log(N0))
     _call_checked(hs[0], X, "h", (m,))
@@ -454,7 +481,7 @@ def bootstrap_filter(zs, x0, P0, f, Q, h, R, N: int, rng: np.random.Generator, *
             h_bw = kernel_bandwidth(N, n) if bandwidth is None else float(bandwidth)
             a = np.sqrt(1.0 - h_bw * h_bw)  # Liu-West shrinkage: the cloud keeps its mean and covariance
             X[mask] = a * X[mask] + (1.0 - a) * out.x[k][mask][..., None, :] + h_bw * _draw(rng, Lk, X[mask].shape[:-1])
-        X = fs[k](X) + _draw(rng, LQ, X.shape[:-1])
+        X = _user(fs[k], "f", k, X) + _draw(rng, LQ, X.shape[:-1])
     return ParticleResult(out.x, out.P, out.ess, out.resampled, out.log_evidence, X_last, lw_last)
 
 
@@ -493,7 +520,7 @@ def optimal_proposal_filter(zs, x0, P0, f, Q, H, R, N: int, rng: np.random.Gener
         K, LS, Wc, LC = g0 if k == 0 else gQ
         gone = missing[k]
         if k > 0:
-            M = fs[k - 1](X)
+            M = _user(fs[k - 1], "f", k - 1, X)
         zhat = M @ H.T
         if not gone.all():
             zk = np.where(gone[..., None], 0.0, zs[k])[..., None, :]
@@ -597,6 +624,6 @@ def jump_markov_filter(zs, x0, P0, models: Sequence, transition, mu0, h, R, N: i
             if sel.any():
                 Lj = Ls[j]
                 xs = X[sel]
-                newX[sel] = mdl.f(xs, dts[k]) + _draw(rng, Lj, xs.shape[:-1])
+                newX[sel] = _user(mdl.f, f"models[{j}].f", k, xs, dts[k]) + _draw(rng, Lj, xs.shape[:-1])
         X = newX
     return ParticleResult(out.x, out.P, out.ess, out.resampled, out.log_evidence, X_last, lw_last, out.mu, modes_last)

@@ -16,14 +16,15 @@ Models layer. Everything here comes from the sensor characterisation of seed 004
   median/MAD modified z-score of Iglewicz & Hoaglin (1993) for channels without one.
 * **Logs**: :func:`generate_log` makes seeded synthetic logs of experiments A–C with the
   statistics of the study's tables (:data:`STUDY_TABLES`); :func:`write_logs` saves them
-  as ``data/ardrone_exp{A,B,C}.csv``; :func:`load_log` reads them back, skipping and
-  counting corrupt records. The study's own logs were never published.
+  as ``ardrone_exp{A,B,C}.csv`` in a folder the caller names; :func:`load_log` reads the
+  committed ones from ``data/`` back, skipping and counting corrupt records. The study's own logs were never published.
 
 Raw values are kept as float64 arrays; the altitude column holds the float32 value
 exactly. Statistics use the unbiased variance (``ddof=1``).
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -31,7 +32,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .._validate import as_float_array, check_finite, check_rng
-from ..datasets import data_dir, data_path
+from ..datasets import data_path
 from ..gaussians import MomentTest, moment_test
 
 __all__ = [
@@ -531,10 +532,15 @@ def log_csv_text(experiment: str, seed: int = DEFAULT_SEED) -> str:
     return "\n".join(head + records) + "\n"
 
 
-def write_logs(directory: str | Path | None = None, seed: int = DEFAULT_SEED) -> list[Path]:
-    """Write ``ardrone_exp{A,B,C}.csv`` (see :func:`log_csv_text`) into ``directory``
-    (default: the book's ``data/`` folder). Returns the paths written."""
-    folder = Path(directory) if directory is not None else data_dir()
+def write_logs(directory: str | os.PathLike, seed: int = DEFAULT_SEED) -> list[Path]:
+    """Write ``ardrone_exp{A,B,C}.csv`` (see :func:`log_csv_text`) into ``directory``, created
+    if missing. The folder is required, never the installed package's data: the book's files
+    are rewritten with ``write_logs("data")`` from the repository's root. Returns the paths."""
+    if not isinstance(directory, (str, os.PathLike)):
+        raise TypeError(f"directory must be the folder to write into (str or os.PathLike), "
+                        f"got {type(directory).__name__}")
+    folder = Path(directory)
+    folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for experiment in EXPERIMENTS:
         path = folder / log_filename(experiment)

@@ -14,7 +14,9 @@ of every line it did not use and why. No line stops the read. The reasons are
 * ``non_utf8``: the line is not valid UTF-8 (or ASCII);
 * ``truncated``: it starts with ``$`` but does not end with ``*hh`` (two hex digits);
 * ``bad_checksum``: the XOR of the characters between ``$`` and ``*`` differs from ``hh``;
-* ``malformed``: it is not a sentence (no ``$``), or a required field is missing or invalid;
+* ``malformed``: it is not a sentence (no ``$``), or a required field is missing or invalid
+  (under a valid checksum too: minutes of latitude or longitude >= 60, a hemisphere other than
+  ``N``/``S`` or ``E``/``W``, a negative speed over ground, a date that does not exist);
 * ``no_fix``: RMC status ``V`` (void) or GGA quality 0, a valid sentence without a position;
 * ``unsupported``: a valid sentence of another type (GSV, VTG, ...), ignored.
 
@@ -120,6 +122,30 @@ def _as_float(value) -> float:
     return float(value)
 
 
+#: Field index (in the comma-split body, address = 0) of latitude, its hemisphere, longitude and
+#: its hemisphere, per sentence type; the RMC date is field :data:`_RMC_DATE`.
+_FIELDS = {"RMC": (3, 4, 5, 6), "GGA": (2, 3, 4, 5)}
+_RMC_DATE = 9
+
+
+def _minutes_valid(field: str) -> bool:
+    """Whether an NMEA ``(d)ddmm.mmmm`` field is unsigned digits whose minutes are below 60."""
+    if not field.replace(".", "", 1).isdigit():
+        return False
+    point = field.find(".")
+    head = field if point < 0 else field[:point]
+    return float(head[-2:] + field[len(head):]) < 60.0
+
+
+def _position_fields_valid(fields: list[str], kind: str) -> bool:
+    """The checks pynmeagps does not make on the raw position fields: hemisphere letters and
+    minutes below 60 (it reads ``01175.000`` as 11 deg + 75/60 and ``Q`` as North)."""
+    i_lat, i_ns, i_lon, i_ew = _FIELDS[kind]
+    if len(fields) <= i_ew or fields[i_ns] not in ("N", "S") or fields[i_ew] not in ("E", "W"):
+        return False
+    return _minutes_valid(fields[i_lat]) and _minutes_valid(fields[i_lon])
+
+
 def _seconds(t) -> float:
     return t.hour * 3600.0 + t.minute * 60.0 + t.second + t.microsecond * 1e-6
 
@@ -139,6 +165,10 @@ def parse_sentence(line: str | bytes) -> tuple[str, dict | None]:
         ``date`` (a ``datetime.date`` or None), ``lat``, ``lon`` (degrees), ``speed`` (m/s,
         NaN for GGA), ``course`` (rad clockwise from North, NaN if empty or GGA) and ``quality``
         (int, None for RMC without mode field). Otherwise ``fields`` is None.
+
+    A sentence with a valid checksum is still ``"malformed"`` if a field cannot be a reading:
+    minutes of latitude or longitude >= 60, a hemisphere other than ``N``/``S`` (``E``/``W``), a
+    negative speed over ground, or an RMC date that does not exist (31 February).
 
     Never raises for bad content; raises ``TypeError`` only if ``line`` is not str or bytes.
     """
@@ -163,7 +193,8 @@ def parse_sentence(line: str | bytes) -> tuple[str, dict | None]:
     body = line[1:tail.start()]
     if calc_checksum(body) != tail.group(1).upper():
         return "bad_checksum", None
-    address = body.split(",", 1)[0]
+    fields = body.split(",")
+    address = fields[0]
     if len(address) != 5 or not address.isalpha():
         return "malformed", None
     kind = address[2:]
@@ -186,7 +217,10 @@ def parse_sentence(line: str | bytes) -> tuple[str, dict | None]:
             return "malformed", None
         quality = _GGA_QUALITY_FROM_POSMODE.get(getattr(msg, "posMode", ""), None)
         date = getattr(msg, "date", "")
-        date = date if isinstance(date, _dt.date) else None
+        if not isinstance(date, _dt.date):
+            if len(fields) > _RMC_DATE and fields[_RMC_DATE].strip():  # a date that does not exist
+                return "malformed", None
+            date = None
     else:
         quality = getattr(msg, "quality", "")
         if not isinstance(quality, int):
@@ -199,6 +233,8 @@ def parse_sentence(line: str | bytes) -> tuple[str, dict | None]:
         return "malformed", None
     if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
         return "malformed", None
+    if not _position_fields_valid(fields, kind):
+        return "malformed", None
     speed = course = float("nan")
     if kind == "RMC":
         try:
@@ -206,7 +242,7 @@ def parse_sentence(line: str | bytes) -> tuple[str, dict | None]:
             course = np.deg2rad(_as_float(getattr(msg, "cog", ""))) % (2 * np.pi)
         except (TypeError, ValueError):
             return "malformed", None
-        if np.isnan(speed):
+        if np.isnan(speed) or speed < 0:
             return "malformed", None
     return "ok", {"type": kind, "talker": address[:2], "time": _seconds(t), "date": date,
                   "lat": float(lat), "lon": float(lon), "speed": float(speed), "course": float(course),
@@ -214,6 +250,10 @@ def parse_sentence(line: str | bytes) -> tuple[str, dict | None]:
 
 
 def _lines(source) -> Iterable[bytes | str]:
+    if isinstance(source, str) and (source.lstrip().startswith("$") or "\n" in source or "\r" in source):
+        raise ValueError(f"source must be a path, the log's bytes or an iterable of lines, but got a str that "
+                         f"is log text, not a path ({source[:40]!r}...); pass a list of sentences ([sentence]) "
+                         "or the text as bytes (text.encode())")
     if isinstance(source, (str, os.PathLike)):
         with open(source, "rb") as fh:
             data = fh.read()
@@ -235,7 +275,9 @@ def read_nmea_log(source) -> tuple[NmeaFixes, SkipReport]:
 
     Parameters
     ----------
-    source : path of a log file, its bytes, or an iterable of lines (str or bytes).
+    source : path of a log file (str or os.PathLike), its bytes, or an iterable of lines (str or
+        bytes). A str is always a path: a str that is a sentence or several lines (it starts with
+        ``$`` or holds a line break) raises ``ValueError``; wrap one sentence in a list.
 
     Returns
     -------
