@@ -160,9 +160,9 @@ def test_bad_transition_forms_are_named():
         kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q(1.0), H, R, dt=dts)
     with pytest.raises(ValueError, match="^dt and time_varying=True exclude each other"):
         kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, dt=dts, time_varying=True)
-    with pytest.raises(ValueError, match=r"^dt must be a scalar or have shape \(12,\)"):
-        kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, dt=dts[:-1])
-    with pytest.raises(ValueError, match="^dt must be a scalar or have shape"):
+    with pytest.raises(ValueError, match=r"^dt must be a scalar or have shape \(12,\).* or \(11,\).*shape \(10,\)$"):
+        kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, dt=dts[:-2])
+    with pytest.raises(ValueError, match=r"^dt must be >= 0 \(intervals in s\), but dt\[0\] = -"):
         kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, dt=-dts)
     with pytest.raises(ValueError, match="^dt must be finite"):
         kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, dt=np.full(T, np.nan))
@@ -184,3 +184,42 @@ def test_bad_transition_forms_are_named():
         kalman.rts_smoother(res, MODEL.F)
     with pytest.raises(ValueError, match=r"^F must have shape \(T, \.\.\., 4, 4\)"):
         kalman.rts_smoother(res, MODEL.F(1.0), time_varying=True)
+
+
+def test_intervals_of_length_T_minus_1_and_timestamps_are_the_same_filter():
+    # np.diff(t) (T - 1 intervals) and times=t give the filter of dt (T,): the last interval is never
+    # used (no step follows), so every number is the same, bit for bit; the smoother likewise
+    dts, zs, x0, P0 = problem(np.random.default_rng(8))
+    t = np.concatenate([[100.0], 100.0 + np.cumsum(dts[:-1])])  # timestamps whose diff is dts[:-1]
+    ref = kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, dt=dts)
+    for kw in (dict(dt=dts[:-1]), dict(times=t)):
+        res = kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, **kw)
+        sm, sm_ref = kalman.rts_smoother(res, MODEL.F, **kw), kalman.rts_smoother(ref, MODEL.F, dt=dts)
+        if "dt" in kw:
+            assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(res, ref))
+            assert all(np.array_equal(a, b) for a, b in zip(sm, sm_ref))
+        else:  # np.diff(t) rounds each interval to an ulp of t (~100 s: 1.4e-14 s)
+            assert np.abs(np.diff(t) - dts[:-1]).max() <= 2 * 128 * EPS
+            # a relative change d of the intervals changes F, Q by O(d); the filter is stable, so the
+            # estimates move by O(d) relative to their scale: 1e4 * d covers constants and T = 12 steps
+            d = 2 * 128 * EPS / dts.min()
+            np.testing.assert_allclose(res.x, ref.x, rtol=0, atol=1e4 * d * np.abs(ref.x).max())
+            np.testing.assert_allclose(sm.x, sm_ref.x, rtol=0, atol=1e4 * d * np.abs(sm_ref.x).max())
+
+
+def test_times_is_checked_and_excludes_dt():
+    dts, zs, x0, P0 = problem(np.random.default_rng(9))
+    T = zs.shape[0]
+    t = np.cumsum(dts)
+    with pytest.raises(ValueError, match="^dt and times exclude each other"):
+        kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, dt=dts, times=t)
+    with pytest.raises(ValueError, match=rf"^times must have shape \({T},\).*got shape \({T - 1},\)$"):
+        kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, times=t[1:])
+    with pytest.raises(ValueError, match=r"^times must be non-decreasing, but times\[2\] < times\[1\]"):
+        kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, times=np.r_[0.0, 2.0, 1.0, t[3:]])
+    with pytest.raises(ValueError, match="^times must be finite"):
+        kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, times=np.full(T, np.nan))
+    with pytest.raises(ValueError, match="^times and time_varying=True exclude each other"):
+        kalman.kalman_filter(zs, x0, P0, MODEL.F, MODEL.Q, H, R, times=t, time_varying=True)
+    with pytest.raises(TypeError, match="^F must be a callable of the interval dt .* when times is given"):
+        kalman.kalman_filter(zs, x0, P0, MODEL.F(1.0), MODEL.Q, H, R, times=t)

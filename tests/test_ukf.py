@@ -188,8 +188,8 @@ def test_bad_input_names_the_argument():
     x, P = np.zeros(2), np.eye(2)
     with pytest.raises(TypeError, match="points"):
         ukf.ukf_predict(x, P, lambda v: v, np.eye(2), points="merwe")
-    with pytest.raises(ValueError, match="P must be positive definite"):
-        ukf.MerweScaledSigmaPoints()(x, np.diag([1.0, 0.0]))
+    with pytest.raises(ValueError, match="P must be positive semi-definite"):
+        ukf.MerweScaledSigmaPoints()(x, np.diag([1.0, -1.0]))
     with pytest.raises(ValueError, match="alpha"):
         ukf.MerweScaledSigmaPoints(alpha=0.0)
     with pytest.raises(ValueError, match="kappa"):

@@ -6,11 +6,13 @@ inner loops of the filters call the unchecked kernels.
 """
 from __future__ import annotations
 
+import operator
+
 import numpy as np
 
 __all__ = ["as_float_array", "as_vector", "as_matrix", "check_covariance", "check_finite", "check_rng",
            "finite_scalar", "positive_scalar", "broadcast_batch", "check_state", "check_sequence", "check_form",
-           "check_angles", "call_checked", "check_points", "as_measurement_sequence"]
+           "check_angles", "call_checked", "as_measurement_sequence"]
 
 _EPS = float(np.finfo(float).eps)
 _TINY = float(np.finfo(float).tiny)
@@ -88,9 +90,12 @@ def check_covariance(value, name: str, n: int | None = None, positive_definite: 
     asymmetry or a negative variance does not. ``origin`` as in :func:`as_matrix`.
     """
     arr = as_matrix(value, name, n, n, origin=origin)
+    why = f" ({origin})" if origin else ""
     if arr.shape[-1] != arr.shape[-2]:
         raise ValueError(f"{name} must be square, shape (..., n, n), got shape {arr.shape}")
     n_ = arr.shape[-1]
+    if n_ == 0:
+        raise ValueError(f"{name} must have shape (..., n, n) with n >= 1, got shape {arr.shape}{why}")
     scale = np.abs(arr).max(axis=(-2, -1), keepdims=True) + _TINY
     tol = 1e3 * n_ * _EPS
     arr_t = arr.swapaxes(-1, -2)
@@ -181,6 +186,8 @@ def check_state(x, P, names: tuple[str, str] = ("x", "P")):
     """A state ``x`` ``(..., n)`` and its covariance ``P`` ``(..., n, n)``; returns ``(x, P, n)``."""
     x = as_vector(x, names[0])
     n = x.shape[-1]
+    if n == 0:
+        raise ValueError(f"{names[0]} must have shape (..., n) with n >= 1 state components, got shape {x.shape}")
     P = check_covariance(P, names[1], n, origin=f"n = {n} from {names[0]}")
     return x, P, n
 
@@ -214,7 +221,10 @@ def check_form(form) -> str:
 def check_angles(angle_components, m: int, name: str = "angle_components") -> tuple[int, ...]:
     """Validate a sequence of component indices into a vector of length ``m``; sorted, unique, >= 0."""
     try:
-        idx = tuple(int(i) for i in angle_components)
+        items = tuple(angle_components)
+        if any(isinstance(i, (bool, np.bool_)) for i in items):
+            raise TypeError
+        idx = tuple(operator.index(i) for i in items)  # an int or NumPy integer; 0.5 or 1.0 is refused
     except TypeError:
         raise TypeError(f"{name} must be a sequence of integer indices, got {angle_components!r}") from None
     bad = [i for i in idx if not -m <= i < m]
@@ -233,13 +243,3 @@ def call_checked(fn, x, name: str, shape: tuple) -> np.ndarray:
         raise ValueError(f"{name}(x) must return shape (..., {', '.join(map(str, shape))}), got {out.shape}")
     return out
 
-
-def check_points(points):
-    """A sigma-point scheme of :mod:`kftrack.ukf` (``None``: the default ``MerweScaledSigmaPoints()``)."""
-    from .ukf import JulierSigmaPoints, MerweScaledSigmaPoints  # the schemes live with the UKF
-
-    if points is None:
-        return MerweScaledSigmaPoints()
-    if not isinstance(points, (MerweScaledSigmaPoints, JulierSigmaPoints)):
-        raise TypeError(f"points must be MerweScaledSigmaPoints or JulierSigmaPoints, got {type(points).__name__}")
-    return points

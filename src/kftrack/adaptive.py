@@ -28,7 +28,8 @@ import numpy as np
 from scipy import stats
 
 from ._validate import as_float_array, as_matrix, broadcast_batch, check_sequence
-from .kernels import kf_predict, kf_update, run_sequence
+from .engines import run_sequence
+from .kernels import kf_predict, kf_update
 
 __all__ = ["NISDetection", "detect_manoeuvre", "AdaptiveResult", "adaptive_q_filter", "innovation_autocorrelation"]
 
@@ -168,7 +169,8 @@ def adaptive_q_filter(zs, x0, P0, F, Q, H, R, *, window: int = 3, confidence: fl
             return kf_predict(x, P, F, Q)
         return kf_predict(x, P, F, np.where(fired[..., None, None], Qb, Q))
 
-    res = run_sequence(zs, x0, P0, batch, row_missing, predict, update)
+    # the NumPy engine with the kernels bound in closures, one covariance per run
+    res = run_sequence(zs, row_missing, x0, P0, tuple(batch), tuple(batch), predict, update)
     return AdaptiveResult(*res, flags)
 
 

@@ -36,10 +36,11 @@ import numpy as np
 
 from ._validate import (as_float_array, as_matrix, as_vector, broadcast_batch, call_checked, check_angles,
                         check_covariance, check_rng, check_sequence, check_state)
-from .kalman import FilterResult, Update
+from .kernels import Update
+from .results import FilterResult
 from .kernels import ekf_predict as _k_predict
 from .kernels import ekf_update as _k_update
-from .engines import Kernel, check_dtype, drive, to_engine, use_jax
+from .engines import Kernel, run_filter
 from .kernels import matrix_transpose, mv, sym, wrap_angle
 from .kernels import residual as _k_residual
 
@@ -186,12 +187,17 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | 
     ``jax.numpy``, and the same function objects reuse the compiled loop. Concrete arrays only
     (their values are checked here).
 
+    **NaN from your functions.** On the NumPy engine the output of ``f``, ``F_jac``, ``h``,
+    ``H_jac`` (and a callable ``Q``) is checked right after each call: NaN or inf raises a
+    ``ValueError`` naming the function and the step. The JAX engine cannot check values inside
+    its compiled loop: there a NaN from your function propagates to every later estimate (check
+    ``np.isfinite(result.x)``).
+
     Returns
     -------
     kftrack.kalman.FilterResult
     """
-    jax_engine = use_jax(zs, x0, P0, Q, R)
-    dt_ = check_dtype(dtype, jax_engine)
+    sources = (zs, x0, P0, Q, R)  # the caller's arrays choose the engine
     Q_fn = Q if callable(Q) else None
     x0c, _, n0 = check_state(x0, P0, ("x0", "P0"))
     if Q_fn is not None:
@@ -209,15 +215,16 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | 
     call_checked(F_jac, xb, "F_jac", (n, n))
     call_checked(h_, xb, "h", (m,))
     call_checked(H_jac_, xb, "H_jac", (m, n))
+    user = (("f", "f"), ("F_jac", "F_jac"), ("Q_fn", "Q"), ("h", "h"), ("H_jac", "H_jac"))
     if Q_fn is not None:
         check_covariance(call_checked(Q_fn, xb, "Q", (n, n)), "Q(x0)", n)  # every run's start
         predict, pred_args = Kernel(_predict_state_q, (("f", f), ("F_jac", F_jac), ("Q_fn", Q_fn),
-                                                       ("x_angles", x_angles))), ()
+                                                       ("x_angles", x_angles)), user), ()
     else:
-        predict, pred_args = Kernel(_predict, (("f", f), ("F_jac", F_jac), ("x_angles", x_angles))), (Q,)
+        predict, pred_args = Kernel(_predict, (("f", f), ("F_jac", F_jac), ("x_angles", x_angles)), user), (Q,)
     meas = (("angles", angles), ("x_angles", x_angles))
     if H_lin is None:
-        update, upd_args = Kernel(_update, (("h", h_), ("H_jac", H_jac_)) + meas), ()
+        update, upd_args = Kernel(_update, (("h", h_), ("H_jac", H_jac_)) + meas, user), ()
     else:  # a linear measurement: H travels as an array (no closure over it)
         update, upd_args = Kernel(_update_linear, meas), (H_lin,)
     upd_steps = ()
@@ -234,10 +241,8 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | 
         upd_steps = (R_seq,)
     else:
         upd_args = upd_args + (R,)
-    conv = lambda a: to_engine(a, jax_engine, dt_)  # noqa: E731
-    return drive(jax_engine, conv(zs), conv(row_missing), conv(x0), conv(P0), batch, batch, predict, update,
-                 pred_args=tuple(map(conv, pred_args)), upd_args=tuple(map(conv, upd_args)),
-                 upd_steps=tuple(map(conv, upd_steps)), progress=progress)
+    return run_filter(zs, row_missing, x0, P0, batch, predict, update, pred_args=pred_args, upd_args=upd_args,
+                      upd_steps=upd_steps, sources=sources, dtype=dtype, progress=progress)
 
 
 # adapters from the engines' argument order (x, P, arrays..., static options) to the kernels

@@ -9,10 +9,15 @@ The filter equations live once, in :mod:`kftrack.kernels`, written against an ar
   compiled with ``jax.jit``, for speed, accelerators and gradients.
 
 Both call the *same* kernels with the *same* arguments; neither holds an equation of its own.
-The public filters (:func:`kftrack.kalman.kalman_filter`, :func:`kftrack.imm.imm_filter`,
-...) validate their inputs once, then pick the engine with :func:`use_jax`: any JAX array
-among the inputs selects the JAX engine, which returns JAX arrays; NumPy input keeps the
-NumPy engine.
+The public filters (:func:`kftrack.kalman.kalman_filter`, :func:`kftrack.ekf.extended_kalman_filter`,
+:func:`kftrack.ukf.unscented_kalman_filter`) validate their inputs once, then make one call,
+:func:`run_filter`, where the engine is chosen (:func:`choose_engine`): any JAX array among the
+caller's inputs selects the JAX engine, which returns JAX arrays; NumPy input keeps the NumPy
+engine. :func:`kftrack.imm.imm_filter` chooses with :func:`choose_engine` too.
+
+**The caller's functions** (``f``, ``h``, their Jacobians) are checked on the NumPy engine right
+after each call (:class:`Checked`): NaN or inf raises a ``ValueError`` naming the function and
+the step. Inside the JAX engine's compiled loop values cannot be checked: NaN propagates.
 
 **One step** (both engines): at step ``k`` update with ``zs[k]`` unless the row is missing
 (then the prior is kept and ``nis``, ``loglik`` are NaN), then predict to step ``k + 1``.
@@ -50,9 +55,12 @@ from typing import NamedTuple
 import numpy as np
 
 from ._validate import as_float_array, check_finite
+from .kernels import _NUMPY, kf_predict, kf_update, logsumexp, moment_match, rts_step
+from .results import FilterResult
 
-__all__ = ["Kernel", "PerDt", "check_dts", "use_jax", "is_tracer", "check_dtype", "to_engine",
-           "run_sequence", "run_closures", "run_scan", "run_imm_scan", "run_smoother_scan", "drive"]
+__all__ = ["Kernel", "Checked", "NonFiniteOutput", "PerDt", "check_dts", "use_jax", "is_tracer", "check_dtype",
+           "choose_engine", "to_engine", "stand_in", "Given", "run_filter", "run_sequence", "run_scan", "run_imm_scan",
+           "run_smoother_scan"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -74,15 +82,45 @@ class PerDt:
         return self.cache[key]
 
 
-def check_dts(dt, T: int) -> np.ndarray:
-    """Sampling intervals ``(T,)``: ``dt[k]`` is the interval (s) after step ``k`` (the last one
-    is not used); a scalar is repeated. Finite and ``>= 0``, else a ``ValueError`` naming ``dt``."""
+def check_dts(dt, T: int, times=None) -> np.ndarray:
+    """Sampling intervals ``(T,)``, ``dt[k]`` the interval (s) from step ``k`` to ``k + 1`` (the last
+    one is not used), from exactly one of
+
+    * ``dt``: a scalar (repeated), ``(T,)`` or ``(T - 1,)`` (the ``np.diff`` of the timestamps;
+      the unused last interval is then taken equal to the one before, so no new interval
+      appears), finite and ``>= 0``;
+    * ``times``: the timestamps ``(T,)`` (s) of the steps, finite and non-decreasing;
+      ``dt = np.diff(times)`` as above.
+
+    A ``ValueError`` (``TypeError`` for non-numbers) names the argument and gives the shape
+    received, not the values."""
+    if times is not None:
+        if dt is not None:
+            raise ValueError("dt and times exclude each other: give the intervals dt (s) or the timestamps "
+                             "times (s), not both")
+        t = check_finite(as_float_array(times, "times"), "times")
+        if t.shape != (T,):
+            raise ValueError(f"times must have shape ({T},) (the timestamp of each of the T = {T} steps, s), "
+                             f"got shape {t.shape}")
+        d = np.diff(t)
+        if np.any(d < 0):
+            k = int(np.argmax(d < 0))
+            raise ValueError(f"times must be non-decreasing, but times[{k + 1}] < times[{k}] "
+                             f"({t[k + 1]:g} < {t[k]:g} s)")
+        return np.append(d, d[-1]) if T > 1 else np.zeros(T)
+    if dt is None:
+        raise TypeError("dt must be given (a scalar, or the intervals after each step), or the timestamps times=")
     d = check_finite(as_float_array(dt, "dt"), "dt")
     if d.ndim == 0:
         d = np.full(T, float(d))
-    if d.shape != (T,) or np.any(d < 0):
-        raise ValueError(f"dt must be a scalar or have shape ({T},) (one interval after each step), "
-                         f"with dt >= 0; got {np.asarray(dt)!r}")
+    if d.shape not in ((T,), (T - 1,)):
+        raise ValueError(f"dt must be a scalar or have shape ({T},) (one interval after each step) or ({T - 1},) "
+                         f"(np.diff of the {T} timestamps), got shape {d.shape}")
+    if np.any(d < 0):
+        k = int(np.argmax(d < 0))
+        raise ValueError(f"dt must be >= 0 (intervals in s), but dt[{k}] = {d[k]:g}")
+    if d.shape == (T - 1,):
+        d = np.append(d, d[-1]) if T > 1 else np.zeros(T)
     return d
 
 
@@ -138,18 +176,137 @@ def to_engine(a, jax_engine: bool, dtype):
     return a if a.dtype == bool or a.dtype == dtype else a.astype(dtype)
 
 
+def choose_engine(*arrays, dtype=None) -> tuple[bool, np.dtype]:
+    """The engine and the precision of a computation: ``(jax_engine, dtype)``, the JAX engine if any
+    of ``arrays`` is a JAX array (:func:`use_jax`), the dtype checked by :func:`check_dtype`."""
+    jax_engine = use_jax(*arrays)
+    return jax_engine, check_dtype(dtype, jax_engine)
+
+
+def stand_in(value, kind: str):
+    """A NumPy stand-in of the same shape for an abstract JAX value (inside ``jit``/``grad``), so the
+    boundary checks still check its shape (values cannot be checked there); the value itself
+    otherwise. ``kind``: ``"cov"`` (identity matrices), ``"matrix"``/``"vector"`` (zeros)."""
+    if not is_tracer(value):
+        return value
+    shape = tuple(value.shape)
+    if kind == "cov" and len(shape) >= 2 and shape[-1] == shape[-2]:
+        return np.broadcast_to(np.eye(shape[-1]), shape)
+    return np.zeros(shape)
+
+
+class Given(NamedTuple):
+    """An array argument of a filter as the caller gave it (``raw``) and as checked at the boundary
+    (``checked``, a NumPy array; for an abstract JAX value the :func:`stand_in` of its shape).
+    The JAX engine runs on ``raw`` when it is a JAX array (tracers keep flowing: ``jit``, ``grad``),
+    on ``checked`` otherwise; the NumPy engine always on ``checked``."""
+
+    raw: object
+    checked: object
+
+
+def _value(a, jax_engine: bool):
+    if type(a) is not Given:
+        return a
+    return a.raw if jax_engine and use_jax(a.raw) else a.checked
+
+
+def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(), pred_steps=(), upd_args=(),
+               upd_steps=(), sources=(), cov_shapes=None, dtype=None, progress: bool = False,
+               priors: bool = True) -> FilterResult:
+    """The one call of a whole-sequence filter after its validation: choose the engine, convert the
+    arrays to it and run the time loop (:func:`run_sequence` or :func:`run_scan`).
+
+    Parameters
+    ----------
+    zs, x0, P0, pred_args, pred_steps, upd_args, upd_steps : the arrays of :func:`run_sequence`,
+        each checked (NumPy) or a :class:`Given` pair ``(caller's value, checked value)``.
+    gone : (T, ...) bool, the missing rows of the checked ``zs``; computed from the caller's
+        ``zs`` inside a trace (where the checked one is a stand-in).
+    batch : the batch shape of the means.
+    predict, update : :class:`Kernel` objects.
+    sources : further caller's values that choose the engine (with the raw values of the
+        :class:`Given` arguments: any JAX array selects the JAX engine).
+    cov_shapes : None (the covariances are per run: ``cov_batch = batch``), or the batch shapes
+        of the inputs the covariance recursion depends on (``P0``, ``F``, ``Q``, ``H``, ``R``):
+        then it is computed once for all runs where they and the missing rows allow it.
+    dtype : None, ``"float64"`` or ``"float32"`` (:func:`check_dtype`).
+    progress, priors : as in :func:`run_sequence`.
+
+    Returns
+    -------
+    kftrack.results.FilterResult
+        NumPy arrays (NumPy engine) or JAX arrays (JAX engine).
+    """
+    raws = [a.raw for a in (zs, x0, P0, *pred_args, *pred_steps, *upd_args, *upd_steps) if type(a) is Given]
+    jax_engine, dt = choose_engine(*raws, *sources, dtype=dtype)
+    zs_raw = zs.raw if type(zs) is Given else zs
+    if is_tracer(zs_raw):  # missing rows known only inside the trace
+        gone = _jax().numpy.isnan(zs_raw).all(-1)
+    elif cov_shapes is not None and gone.ndim > 1:
+        T = gone.shape[0]
+        flat = gone.reshape(T, -1)
+        if (flat == flat[:, :1]).all():  # one pattern for every run: keep the covariances shared
+            gone = flat[:, 0]
+    cov_batch = batch if cov_shapes is None else np.broadcast_shapes(*cov_shapes, tuple(gone.shape[1:]))
+    conv = lambda a: to_engine(_value(a, jax_engine), jax_engine, dt)  # noqa: E731
+    return (run_scan if jax_engine else run_sequence)(
+        conv(zs), conv(gone), conv(x0), conv(P0), tuple(batch), tuple(cov_batch), predict, update,
+        pred_args=tuple(map(conv, pred_args)), pred_steps=tuple(map(conv, pred_steps)),
+        upd_args=tuple(map(conv, upd_args)), upd_steps=tuple(map(conv, upd_steps)), progress=progress,
+        priors=bool(priors))
+
+
 # --------------------------------------------------------------------------------------------
 # the step
 # --------------------------------------------------------------------------------------------
+class NonFiniteOutput(ValueError):
+    """A function of the caller returned NaN or inf (raised by a checked call on the NumPy engine;
+    :func:`run_sequence` turns it into a ``ValueError`` that names the function and the step)."""
+
+    def __init__(self, name: str, bad: str, shape: tuple):
+        super().__init__(f"{name} returned {bad} (on an input of shape {shape})")
+        self.name, self.bad, self.shape = name, bad, shape
+
+
+class Checked:
+    """A function of the caller, ``fn``, with its output checked right after each call: NaN or inf
+    raises :class:`NonFiniteOutput` naming ``name`` (the boundary between the caller's code and
+    the package, on the NumPy engine; one ``np.isfinite`` over the output per call)."""
+
+    __slots__ = ("fn", "name")
+
+    def __init__(self, fn: Callable, name: str):
+        self.fn, self.name = fn, name
+
+    def __call__(self, x):
+        out = self.fn(x)
+        a = np.asarray(out)
+        if not np.isfinite(a).all():
+            raise NonFiniteOutput(self.name, "NaN" if np.isnan(a).any() else "inf", tuple(np.shape(x)))
+        return out
+
+
 class Kernel(NamedTuple):
     """A kernel of :mod:`kftrack.kernels` with its static options bound, hashable so that the JAX
-    engine compiles once per kernel and options: ``Kernel(kf_update, (("form", "joseph"),))``."""
+    engine compiles once per kernel and options: ``Kernel(kf_update, (("form", "joseph"),))``.
+    ``user`` pairs ``(option, name)`` mark the options that are the caller's functions (``f``,
+    ``h``, their Jacobians): the NumPy engine checks their outputs after each call
+    (:meth:`checked`); inside a JAX trace values cannot be checked, and NaN propagates."""
 
     fn: Callable
     static: tuple = ()
+    user: tuple = ()
 
     def __call__(self, *args):
         return self.fn(*args, **dict(self.static))
+
+    def checked(self) -> Kernel:
+        """The kernel with the caller's functions wrapped in :class:`Checked`."""
+        if not self.user:
+            return self
+        names = dict(self.user)
+        return self._replace(static=tuple((k, Checked(v, names[k]) if k in names else v) for k, v in self.static))
 
 
 def _step(xp, predict, update, x, P, z, g, pred_args, pk, upd_args, uk, last):
@@ -189,10 +346,8 @@ def run_sequence(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, upda
 
     Returns
     -------
-    kftrack.kalman.FilterResult
+    kftrack.results.FilterResult
     """
-    from .kalman import FilterResult  # the result type lives with the public filter
-
     T, n = zs.shape[0], x0.shape[-1]
     dtype = x0.dtype
     x = np.broadcast_to(x0, batch + (n,)).copy()
@@ -208,26 +363,36 @@ def run_sequence(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, upda
 
         steps = tqdm(steps, desc="filter", unit="step")
     xp = _np_namespace()
-    for k in steps:
-        if priors:
-            out_xp[k], out_Pp[k] = x, P
-        pk, uk = tuple(a[k] for a in pred_steps), tuple(a[k] for a in upd_steps)
-        g = gone[k]
-        if g.all():  # nothing to update: predict only
-            out_x[k], out_P[k] = x, P
-            if k < T - 1:
-                x, P = predict(x, P, *pred_args, *pk)
-            continue
-        if not g.any():  # every run measured: no selection needed
-            u = update(x, P, zs[k], *upd_args, *uk)
-            x, P = u.x, u.P
-            out_nis[k], out_ll[k] = u.nis, u.loglik
-            out_x[k], out_P[k] = x, P
-            if k < T - 1:
-                x, P = predict(x, P, *pred_args, *pk)
-            continue
-        out_x[k], out_P[k], out_nis[k], out_ll[k], x, P = _step(xp, predict, update, x, P, zs[k], g, pred_args, pk,
-                                                                upd_args, uk, k == T - 1)
+    if isinstance(predict, Kernel):  # the caller's functions checked after each call
+        predict = predict.checked()
+    if isinstance(update, Kernel):
+        update = update.checked()
+    k = 0
+    try:
+        for k in steps:
+            if priors:
+                out_xp[k], out_Pp[k] = x, P
+            pk, uk = tuple(a[k] for a in pred_steps), tuple(a[k] for a in upd_steps)
+            g = gone[k]
+            if g.all():  # nothing to update: predict only
+                out_x[k], out_P[k] = x, P
+                if k < T - 1:
+                    x, P = predict(x, P, *pred_args, *pk)
+                continue
+            if not g.any():  # every run measured: no selection needed
+                u = update(x, P, zs[k], *upd_args, *uk)
+                x, P = u.x, u.P
+                out_nis[k], out_ll[k] = u.nis, u.loglik
+                out_x[k], out_P[k] = x, P
+                if k < T - 1:
+                    x, P = predict(x, P, *pred_args, *pk)
+                continue
+            out_x[k], out_P[k], out_nis[k], out_ll[k], x, P = _step(xp, predict, update, x, P, zs[k], g,
+                                                                    pred_args, pk, upd_args, uk, k == T - 1)
+    except NonFiniteOutput as e:
+        raise ValueError(f"{e.name} returned {e.bad} at step {k} (called on an input of shape {e.shape}): check "
+                         f"{e.name} where the filter's state has gone (the NumPy engine checks the output of your "
+                         "functions after each call)") from None
     if cov_batch != batch:  # shared covariances: read-only views of the one sequence
         out_Pp, out_P = (None if a is None else _batch_view(a, np, batch, cov_batch) for a in (out_Pp, out_P))
     return FilterResult(out_xp, out_Pp, out_x, out_P, out_nis, out_ll)
@@ -241,17 +406,9 @@ def _batch_view(P, xp, batch: tuple, cov_batch: tuple):
                            (T,) + batch + (n, n))
 
 
-def run_closures(zs, x0, P0, batch, row_missing, predict, update, progress: bool = False):
-    """The NumPy engine with the kernels bound in closures, ``predict(x, P)`` and
-    ``update(x, P, z)``, and batched covariances (the former ``kftrack.kernels.run_sequence``)."""
-    return run_sequence(zs, row_missing, x0, P0, tuple(batch), tuple(batch), predict, update, progress=progress)
-
-
 @lru_cache(maxsize=1)
 def _np_namespace():
-    from .kernels import _NUMPY  # numpy itself (NumPy >= 2), else array_api_compat's wrapper
-
-    return _NUMPY
+    return _NUMPY  # numpy itself (NumPy >= 2), else array_api_compat's wrapper
 
 
 # --------------------------------------------------------------------------------------------
@@ -321,8 +478,6 @@ def run_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, 
     Every step runs the update on all runs and selects the prior where a row is missing.
     With ``priors=False`` the predictions are not outputs of the loop (the compiled program
     neither stores nor returns them; ``x_prior``, ``P_prior`` are None)."""
-    from .kalman import FilterResult
-
     out = _scan_jit()(zs, gone, x0, P0, tuple(pred_args), tuple(pred_steps), tuple(upd_args), tuple(upd_steps),
                       batch=tuple(batch), cov_batch=tuple(cov_batch), predict=predict, update=update,
                       priors=bool(priors))
@@ -330,8 +485,6 @@ def run_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, 
 
 
 def _imm_impl(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch, mixing_weights):
-    from .kernels import kf_predict, kf_update, logsumexp, moment_match
-
     jax = _jax()
     jnp = jax.numpy
     r, nb = H.shape[0], len(batch)
@@ -403,8 +556,6 @@ def run_imm_scan(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch: tuple
 
 
 def _smooth_impl(x, P, x_prior, P_prior, F, *, per_step):
-    from .kernels import rts_step
-
     jax = _jax()
     jnp = jax.numpy
     T = x.shape[0]
@@ -433,9 +584,4 @@ def run_smoother_scan(x, P, x_prior, P_prior, F, per_step: bool):
     :class:`kftrack.kalman.FilterResult`; ``F`` one transition ``(..., n, n)`` or, with
     ``per_step``, a stack ``(T, ..., n, n)``. Returns ``(x_s, P_s, G)``."""
     return _smooth_jit()(x, P, x_prior, P_prior, F, per_step=bool(per_step))
-
-
-def drive(jax_engine: bool, *args, **kwargs):
-    """:func:`run_scan` if ``jax_engine`` else :func:`run_sequence`, with the same arguments."""
-    return (run_scan if jax_engine else run_sequence)(*args, **kwargs)
 

@@ -14,7 +14,9 @@ The unchecked kernels behind these functions live in :mod:`kftrack.kernels`; the
 :func:`kalman_filter` runs on one of the two engines of :mod:`kftrack.engines` (NumPy arrays in:
 the Python loop; JAX arrays in: ``jax.lax.scan`` under ``jax.jit``, JAX arrays out). The
 transition may be constant, a function of irregular sampling intervals ``dt``, or a time-first
-stack (``time_varying=True``).
+stack (``time_varying=True``). The result types :class:`FilterResult` and :class:`SmootherResult`
+live in :mod:`kftrack.results` (so the drivers can build them without importing this module) and
+are re-exported here.
 
 Equations (Bar-Shalom, Li & Kirubarajan 2001, §5.2):
 
@@ -29,44 +31,17 @@ Equations (Bar-Shalom, Li & Kirubarajan 2001, §5.2):
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 
-from ._validate import (as_matrix, as_measurement_sequence, as_vector, broadcast_batch, check_covariance, check_form,
-                        check_state)
-from .engines import (Kernel, PerDt, _jax, check_dtype, check_dts, drive, is_tracer, run_smoother_scan, to_engine,
-                      use_jax)
+from ._validate import (as_matrix, as_measurement_sequence, as_vector, broadcast_batch, check_covariance, check_finite,
+                        check_form, check_state)
+from .engines import Given, Kernel, PerDt, check_dts, run_filter, run_smoother_scan, stand_in, to_engine, use_jax
 from .kernels import Update, kf_correct, kf_gain, kf_predict, kf_score, kf_update, rts_step
+from .results import FilterResult, SmootherResult  # re-exported: the result types live at the bottom
 
 __all__ = ["Update", "FilterResult", "SmootherResult", "predict", "update", "kalman_filter", "rts_smoother",
            "KalmanStepper"]
-
-
-class FilterResult(NamedTuple):
-    """A filtered sequence, time first.
-
-    ``x_prior[k]``, ``P_prior[k]`` are the predictions for step ``k`` before its measurement
-    (``x_prior[0] = x0``); ``x[k]``, ``P[k]`` the estimates after it. ``nis`` and ``loglik`` are
-    NaN at steps without a measurement. ``x_prior`` and ``P_prior`` are None when the filter ran
-    with ``priors=False``.
-    """
-
-    x_prior: np.ndarray | None
-    P_prior: np.ndarray | None
-    x: np.ndarray
-    P: np.ndarray
-    nis: np.ndarray
-    loglik: np.ndarray
-
-
-class SmootherResult(NamedTuple):
-    """Rauch–Tung–Striebel smoothed sequence: means ``x`` ``(T, ..., n)``, covariances ``P``
-    ``(T, ..., n, n)`` and smoother gains ``G`` ``(T-1, ..., n, n)``."""
-
-    x: np.ndarray
-    P: np.ndarray
-    G: np.ndarray
 
 
 def predict(x, P, F, Q) -> tuple[np.ndarray, np.ndarray]:
@@ -82,12 +57,31 @@ def predict(x, P, F, Q) -> tuple[np.ndarray, np.ndarray]:
     Returns
     -------
     x, P : the predicted mean ``(..., n)`` and covariance ``(..., n, n)``.
+
+    Raises
+    ------
+    ValueError, TypeError
+        On bad input, naming the argument; also when the prediction overflows float64 (e.g.
+        ``P = 1e308 I``), naming the input of largest magnitude.
     """
     x, P, n = check_state(x, P)
     F = as_matrix(F, "F", n, n, origin=f"n = {n} from x")
     Q = check_covariance(Q, "Q", n, origin=f"n = {n} from x")
     broadcast_batch({"x": x.shape[:-1], "P": P.shape[:-2], "F": F.shape[:-2], "Q": Q.shape[:-2]})
-    return kf_predict(x, P, F, Q)
+    out = kf_predict(x, P, F, Q)
+    if not (np.isfinite(out[0]).all() and np.isfinite(out[1]).all()):
+        raise ValueError(_overflow("the prediction F x, F P F^T + Q", x=x, P=P, F=F, Q=Q))
+    return out
+
+
+def _overflow(what: str, **args) -> str:
+    """The message for a result that overflows float64 from finite inputs: it names the input of
+    largest magnitude first, and gives every input's largest entry."""
+    mags = {k: float(np.abs(v).max()) for k, v in args.items()}
+    big = max(mags, key=mags.get)
+    desc = ", ".join(f"max |{k}| = {v:.3g}" for k, v in mags.items())
+    return (f"{big} is too large: {what} overflows float64 (is not finite) with {desc}; rescale the units "
+            "of the state and the measurement")
 
 
 def update(x, P, z, H, R, *, form: str = "joseph") -> Update:
@@ -107,7 +101,11 @@ def update(x, P, z, H, R, *, form: str = "joseph") -> Update:
     Returns
     -------
     Update
-        ``(x, P, y, S, K, nis, loglik)``; see :class:`Update`.
+        ``(x, P, y, S, K, nis, loglik)``; see :class:`Update`. A measurement so far from the
+        prediction that :math:`y^\top S^{-1} y` exceeds the float64 range (about 1.8e308) gets
+        ``nis = inf`` and ``loglik = -inf``, the correctly rounded values (``x``, ``P`` are
+        unaffected); a posterior ``x`` or ``P`` that overflows raises a ``ValueError`` naming
+        the input of largest magnitude.
     """
     form = check_form(form)
     x, P, n = check_state(x, P)
@@ -116,37 +114,30 @@ def update(x, P, z, H, R, *, form: str = "joseph") -> Update:
     H = as_matrix(H, "H", m, n, origin=f"m = {m} from z, n = {n} from x")
     R = check_covariance(R, "R", m, positive_definite=True, origin=f"m = {m} from z")
     broadcast_batch({"x": x.shape[:-1], "P": P.shape[:-2], "z": z.shape[:-1], "H": H.shape[:-2], "R": R.shape[:-2]})
-    return kf_update(x, P, z, H, R, form)
+    u = kf_update(x, P, z, H, R, form)
+    if not (np.isfinite(u.x).all() and np.isfinite(u.P).all()):
+        raise ValueError(_overflow("the updated mean x + K (z - H x) or covariance", x=x, P=P, z=z, H=H, R=R))
+    return u
 
 
-def _stand_in(value, kind: str):
-    """A NumPy stand-in of the same shape for an abstract JAX value (inside ``jit``/``grad``), so the
-    boundary checks still check its shape (values cannot be checked there); the value itself
-    otherwise. ``kind``: ``"cov"`` (identity matrices), ``"matrix"``/``"vector"`` (zeros)."""
-    if not is_tracer(value):
-        return value
-    shape = tuple(value.shape)
-    if kind == "cov" and len(shape) >= 2 and shape[-1] == shape[-2]:
-        return np.broadcast_to(np.eye(shape[-1]), shape)
-    return np.zeros(shape)
-
-
-def _transitions(F, Q, n: int, T: int, dt, time_varying: bool, what: str = "x0"):
+def _transitions(F, Q, n: int, T: int, dt, time_varying: bool, what: str = "x0", times=None):
     """``F``, ``Q`` in one of the three forms of :func:`kalman_filter`, checked. Returns
     ``(F, Q, per_step)``: constant ``(..., n, n)`` matrices, or (``per_step`` True) stacks
-    ``(T, ..., n, n)`` with ``F[k]`` mapping step ``k`` to ``k + 1``."""
+    ``(T, ..., n, n)`` with ``F[k]`` mapping step ``k`` to ``k + 1``. The intervals come from
+    ``dt`` or ``times`` (:func:`kftrack.engines.check_dts`)."""
     if not isinstance(time_varying, (bool, np.bool_)):
         raise TypeError(f"time_varying must be True or False, got {time_varying!r}")
     origin = f"n = {n} from {what}"
-    if dt is not None:
+    if dt is not None or times is not None:
+        given = "dt" if times is None else "times"
         if time_varying:
-            raise ValueError("dt and time_varying=True exclude each other: give F, Q as callables of dt "
-                             "(dt=...) or as (T, ..., n, n) stacks (time_varying=True)")
+            raise ValueError(f"{given} and time_varying=True exclude each other: give F, Q as callables of dt "
+                             f"({given}=...) or as (T, ..., n, n) stacks (time_varying=True)")
         for name, fn in (("F", F), ("Q", Q)):
             if not callable(fn):
-                raise TypeError(f"{name} must be a callable of the interval dt (e.g. model.{name}) when dt is "
+                raise TypeError(f"{name} must be a callable of the interval dt (e.g. model.{name}) when {given} is "
                                 f"given, got {type(fn).__name__}")
-        dts = check_dts(dt, T)
+        dts = check_dts(dt, T, times)
         per_dt = PerDt(lambda d: (F(d), Q(d)))  # each distinct interval evaluated once
         distinct, where = np.unique(dts, return_inverse=True)
         mats = []
@@ -164,9 +155,9 @@ def _transitions(F, Q, n: int, T: int, dt, time_varying: bool, what: str = "x0")
     for name, fn in (("F", F), ("Q", Q)):
         if callable(fn) and not hasattr(fn, "shape"):
             raise TypeError(f"{name} is a callable ({type(fn).__name__}); pass the sampling intervals dt=... "
-                            f"to evaluate it, or pass {name} as an array")
-    Qh = check_covariance(_stand_in(Q, "cov"), "Q", n, origin=origin)
-    Fh = as_matrix(_stand_in(F, "matrix"), "F", n, n, origin=origin)
+                            f"(or the timestamps times=...) to evaluate it, or pass {name} as an array")
+    Qh = check_covariance(stand_in(Q, "cov"), "Q", n, origin=origin)
+    Fh = as_matrix(stand_in(F, "matrix"), "F", n, n, origin=origin)
     if not time_varying:
         return Fh, Qh, False
     for name, a in (("F", Fh), ("Q", Qh)):
@@ -176,8 +167,8 @@ def _transitions(F, Q, n: int, T: int, dt, time_varying: bool, what: str = "x0")
     return Fh, Qh, True
 
 
-def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, time_varying: bool = False, progress: bool = False,
-                  dtype=None, priors: bool = True) -> FilterResult:
+def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, times=None, time_varying: bool = False,
+                  progress: bool = False, dtype=None, priors: bool = True) -> FilterResult:
     r"""Filter a whole measurement sequence: at each step update with ``zs[k]``, then predict.
 
     A measurement row that is all NaN means "no measurement at this step": the filter only
@@ -187,9 +178,9 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, time_varying: bool = False
     The transition comes in one of three forms:
 
     * constant: ``F``, ``Q`` arrays ``(n, n)`` or ``(..., n, n)``, the same at every step;
-    * irregular sampling: ``dt`` given, ``F`` and ``Q`` callables of the interval (``model.F``,
-      ``model.Q`` of :mod:`kftrack.models`), evaluated once per distinct interval; step ``k``
-      predicts with :math:`F(dt_k)`, :math:`Q(dt_k)`;
+    * irregular sampling: ``dt`` (or ``times``) given, ``F`` and ``Q`` callables of the interval
+      (``model.F``, ``model.Q`` of :mod:`kftrack.models`), evaluated once per distinct interval;
+      step ``k`` predicts with :math:`F(dt_k)`, :math:`Q(dt_k)`;
     * ``time_varying=True``: ``F``, ``Q`` stacks ``(T, ..., n, n)``, ``F[k]`` mapping step ``k`` to
       step ``k + 1``.
 
@@ -207,8 +198,11 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, time_varying: bool = False
     F, Q : the transition matrix and process-noise covariance in one of the forms above.
     H, R : (m, n) or (..., m, n) measurement matrix, (m, m) or (..., m, m) measurement noise
         (positive definite), constant over time.
-    dt : None, or the intervals (s) after each step, a scalar or ``(T,)`` (``dt[k]`` from step
-        ``k`` to ``k + 1``, as in :func:`kftrack.imm.imm_filter`); then ``F``, ``Q`` are callables.
+    dt : None, or the intervals (s) after each step: a scalar, ``(T,)`` (``dt[k]`` from step ``k``
+        to ``k + 1``, the last one unused, as in :func:`kftrack.imm.imm_filter`) or ``(T - 1,)``
+        (``np.diff(t)`` of the timestamps); then ``F``, ``Q`` are callables.
+    times : None, or instead of ``dt`` the timestamps ``(T,)`` (s, non-decreasing) of the
+        measurements: ``dt = np.diff(times)``. ``dt`` and ``times`` exclude each other.
     time_varying : if True, ``F`` and ``Q`` carry a leading time axis ``T``.
     progress : show a progress bar (tqdm) over the time steps (NumPy engine only).
     dtype : None or ``"float64"`` (default), or ``"float32"``, an explicit choice that loses
@@ -238,34 +232,21 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, time_varying: bool = False
     """
     if not isinstance(priors, (bool, np.bool_)):
         raise TypeError(f"priors must be True or False, got {priors!r}")
-    jax_engine = use_jax(zs, x0, P0, F, Q, H, R)
-    dt_ = check_dtype(dtype, jax_engine)
-    zs_h, gone = as_measurement_sequence(_stand_in(zs, "vector"), "zs")
+    zs_h, gone = as_measurement_sequence(stand_in(zs, "vector"), "zs")
     T, m = zs_h.shape[0], zs_h.shape[-1]
-    x0_h, P0_h, n = check_state(_stand_in(x0, "vector"), _stand_in(P0, "cov"), ("x0", "P0"))
-    R_h = check_covariance(_stand_in(R, "cov"), "R", m, positive_definite=True, origin=f"m = {m} from zs")
-    F_h, Q_h, per_step = _transitions(F, Q, n, T, dt, time_varying)
-    H_h = as_matrix(_stand_in(H, "matrix"), "H", m, n, origin=f"m = {m} from zs, n = {n} from x0")
+    x0_h, P0_h, n = check_state(stand_in(x0, "vector"), stand_in(P0, "cov"), ("x0", "P0"))
+    R_h = check_covariance(stand_in(R, "cov"), "R", m, positive_definite=True, origin=f"m = {m} from zs")
+    F_h, Q_h, per_step = _transitions(F, Q, n, T, dt, time_varying, times=times)
+    H_h = as_matrix(stand_in(H, "matrix"), "H", m, n, origin=f"m = {m} from zs, n = {n} from x0")
     tb = 1 if per_step else 0  # leading time axis of F, Q
     batch = broadcast_batch({"zs[k]": zs_h.shape[1:-1], "x0": x0_h.shape[:-1], "P0": P0_h.shape[:-2],
                              "F": F_h.shape[tb:-2], "Q": Q_h.shape[tb:-2], "H": H_h.shape[:-2], "R": R_h.shape[:-2]})
-    if is_tracer(zs):  # missing rows known only inside the trace
-        gone = _jax().numpy.isnan(zs).all(-1)
-    elif gone.ndim > 1:
-        flat = gone.reshape(T, -1)
-        if (flat == flat[:, :1]).all():  # one pattern for every run: keep the covariances shared
-            gone = flat[:, 0]
-    cov_batch = np.broadcast_shapes(P0_h.shape[:-2], F_h.shape[tb:-2], Q_h.shape[tb:-2], H_h.shape[:-2],
-                                    R_h.shape[:-2], tuple(gone.shape[1:]))
-    # the engine gets the caller's values (JAX arrays or tracers stay such); checked ones otherwise
-    pick = (lambda a, h: a if use_jax(a) else h) if jax_engine else (lambda a, h: h)
-    args = [to_engine(pick(a, h), jax_engine, dt_) for a, h in
-            ((zs, zs_h), (x0, x0_h), (P0, P0_h), (F, F_h), (Q, Q_h), (H, H_h), (R, R_h))]
-    zs_e, x0_e, P0_e, F_e, Q_e, H_e, R_e = args
-    gone_e = to_engine(gone, jax_engine, dt_)
-    pred = dict(pred_steps=(F_e, Q_e)) if per_step else dict(pred_args=(F_e, Q_e))
-    return drive(jax_engine, zs_e, gone_e, x0_e, P0_e, batch, cov_batch, _KF_PREDICT, _KF_UPDATE,
-                 upd_args=(H_e, R_e), progress=progress, priors=bool(priors), **pred)
+    transition = (Given(F, F_h), Given(Q, Q_h))
+    return run_filter(Given(zs, zs_h), gone, Given(x0, x0_h), Given(P0, P0_h), batch, _KF_PREDICT, _KF_UPDATE,
+                      pred_steps=transition if per_step else (), pred_args=() if per_step else transition,
+                      upd_args=(Given(H, H_h), Given(R, R_h)),
+                      cov_shapes=(P0_h.shape[:-2], F_h.shape[tb:-2], Q_h.shape[tb:-2], H_h.shape[:-2], R_h.shape[:-2]),
+                      dtype=dtype, progress=progress, priors=priors)
 
 
 _KF_PREDICT = Kernel(kf_predict)
@@ -280,7 +261,7 @@ def _compact(a, nb: int):
     return None
 
 
-def rts_smoother(result: FilterResult, F, *, dt=None, time_varying: bool = False) -> SmootherResult:
+def rts_smoother(result: FilterResult, F, *, dt=None, times=None, time_varying: bool = False) -> SmootherResult:
     r"""Rauch–Tung–Striebel smoother over a :class:`FilterResult` (Särkkä 2013, Thm 8.2).
 
     .. math::
@@ -297,13 +278,21 @@ def rts_smoother(result: FilterResult, F, *, dt=None, time_varying: bool = False
     F : the transition used by the filter, in the same form: an ``(n, n)`` or ``(..., n, n)``
         matrix; a callable of ``dt`` (with ``dt``); or a ``(T, ..., n, n)`` stack
         (``time_varying=True``).
-    dt : the filter's intervals, scalar or ``(T,)``, when ``F`` is a callable.
+    dt : the filter's intervals, scalar, ``(T,)`` or ``(T - 1,)``, when ``F`` is a callable.
+    times : instead of ``dt``, the filter's timestamps ``(T,)`` (s, non-decreasing).
     time_varying : if True, ``F`` carries a leading time axis ``T`` (``F[k]``: step ``k`` to ``k + 1``).
 
     Returns
     -------
     SmootherResult
         ``x`` ``(T, ..., n)``, ``P`` ``(T, ..., n, n)``, gains ``G`` ``(T-1, ..., n, n)``.
+
+    Notes
+    -----
+    A singular prediction :math:`P^-_{k+1}` (a known start ``P0 = 0`` with ``Q = 0`` or a
+    rank-deficient ``Q``) is handled on the NumPy engine with the pseudo-inverse,
+    :math:`G_k = P_k F_k^\top (P^-_{k+1})^{+}`, the smoother gain in that case
+    (:func:`kftrack.kernels.rts_step`); the JAX engine solves without that branch (inf/NaN there).
     """
     if not isinstance(result, FilterResult):
         raise TypeError(f"result must be a FilterResult from kalman_filter, got {type(result).__name__}")
@@ -315,8 +304,10 @@ def rts_smoother(result: FilterResult, F, *, dt=None, time_varying: bool = False
     T = result.x.shape[0]
     batch = result.x.shape[1:-1]
     eye = np.eye(n)
-    F_h, _, per_step = _transitions(F, (lambda d: eye) if dt is not None else (eye if not time_varying else
-                                    np.broadcast_to(eye, (T, n, n))), n, T, dt, time_varying, "the filter's states")
+    timed = dt is not None or times is not None
+    F_h, _, per_step = _transitions(F, (lambda d: eye) if timed else (eye if not time_varying else
+                                    np.broadcast_to(eye, (T, n, n))), n, T, dt, time_varying, "the filter's states",
+                                    times)
     tb = 1 if per_step else 0
     if broadcast_batch({"result": batch, "F": F_h.shape[tb:-2]}) != batch:
         raise ValueError(f"F must have shape ({n}, {n}) or the filter's batch axes {batch} + ({n}, {n}), "
@@ -331,13 +322,19 @@ def rts_smoother(result: FilterResult, F, *, dt=None, time_varying: bool = False
     shared = P is not None and P_prior is not None and F_h.shape[tb:-2] == ()
     if not shared:
         P, P_prior = result.P, result.P_prior
+    for name, a in (("x", result.x), ("P", P), ("x_prior", result.x_prior), ("P_prior", P_prior)):
+        check_finite(np.asarray(a), f"result.{name}")
     xs = result.x.copy()
     Ps = P.copy()
     G = np.empty((max(T - 1, 0),) + P.shape[1:])
     for k in range(T - 2, -1, -1):
         Fk = F_h[k] if per_step else F_h
-        xs[k], Ps[k], G[k] = rts_step(result.x[k], P[k], result.x_prior[k + 1], P_prior[k + 1], xs[k + 1],
-                                      Ps[k + 1], Fk)
+        try:
+            xs[k], Ps[k], G[k] = rts_step(result.x[k], P[k], result.x_prior[k + 1], P_prior[k + 1], xs[k + 1],
+                                          Ps[k + 1], Fk)
+        except np.linalg.LinAlgError as exc:
+            raise ValueError(f"result.P_prior[{k + 1}] cannot be used by the smoother ({exc}); pass the FilterResult "
+                             "of kalman_filter run with this F") from None
     if shared:
         Ps = np.broadcast_to(Ps.reshape((T,) + (1,) * len(batch) + (n, n)), (T,) + batch + (n, n))
         G = np.broadcast_to(G.reshape((G.shape[0],) + (1,) * len(batch) + (n, n)), (G.shape[0],) + batch + (n, n))

@@ -405,12 +405,54 @@ def kf_update(x, P, z, H, R, form: str = "joseph") -> Update:
     return Update(x_post, g.P, y, g.S, g.K, *kf_score(y, g))
 
 
+def _rts_gain_t(xp, A, P, F):
+    r"""``G^T`` of the RTS gain :math:`G = P F^\top A^{-1}`, ``A`` the prediction :math:`P^-_{k+1}`:
+    :func:`solve_spd` (the same bits) for a positive definite ``A``. On NumPy, where ``A`` is only
+    positive semi-definite (its Cholesky factorization fails), :math:`A^{+} F P` with the
+    pseudo-inverse of the eigendecomposition, eigenvalues ``<= 1e3 n eps max|lambda|`` (round-off
+    of a singular ``A``) counted as zero, after checking the range condition that makes it the
+    smoother gain: :math:`F P` has no component along the null space of ``A`` beyond what those
+    eigenvalues allow (:math:`|v^\top F P u| \le \sqrt{v^\top F P F^\top v}\,\sqrt{u^\top P u}`); an ``A``
+    that is not :math:`F P F^\top + Q` raises ``numpy.linalg.LinAlgError``. The JAX engine solves
+    as before (no value branch inside a trace: a singular ``A`` gives inf/NaN)."""
+    B = mm(F, P)
+    L = _spd_factor(xp, A)
+    if type(A) is np.ndarray and type(B) is np.ndarray and L is not _NP_SPD:
+        try:
+            np.linalg.cholesky(A)  # positive definite: the solve as before
+        except np.linalg.LinAlgError:
+            w, V = np.linalg.eigh(A)
+            n = A.shape[-1]
+            eps = np.finfo(A.dtype).eps
+            wmax = np.abs(w).max(axis=-1, keepdims=True)
+            tol = 1e3 * n * eps * wmax
+            keep = w > tol
+            VtB = V.swapaxes(-1, -2) @ B
+            pmax = np.abs(P).max(axis=(-2, -1))[..., None, None]
+            bmax = np.abs(B).max(axis=(-2, -1))[..., None, None]
+            bound = 10.0 * np.sqrt(n * tol[..., :, None] * pmax) + 1e3 * n * eps * bmax
+            if (np.abs(np.where(keep[..., :, None], 0.0, VtB)) > bound).any():
+                raise np.linalg.LinAlgError("the prediction P_prior is singular and F P has a component in its null "
+                                            "space: P_prior is not F P F^T + Q of this filter")
+            inv_w = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
+            return V @ (inv_w[..., :, None] * VtB)
+    return _spd_solve(xp, A, L, B)
+
+
 def rts_step(x, P, x_prior_next, P_prior_next, xs_next, Ps_next, F):
     r"""One Rauch–Tung–Striebel step back in time: :math:`G = P F^\top (P^-_{k+1})^{-1}`,
     :math:`x^s = x + G(x^s_{k+1} - x^-_{k+1})`, :math:`P^s = \operatorname{sym}(P + G(P^s_{k+1} - P^-_{k+1})G^\top)`.
-    Returns ``(x^s, P^s, G)``."""
+    Returns ``(x^s, P^s, G)``.
+
+    A singular :math:`P^-_{k+1}` (a known start ``P0 = 0`` with ``Q = 0`` or a rank-deficient
+    ``Q``) takes the pseudo-inverse on NumPy: :math:`G = P F^\top (P^-_{k+1})^{+}` is the
+    smoother gain there, because the range of :math:`F P F^\top` lies in that of
+    :math:`P^-_{k+1} = F P F^\top + Q` (both positive semi-definite), so
+    :math:`G P^-_{k+1} = P F^\top` still holds. A positive definite :math:`P^-_{k+1}` is solved
+    as always (the same bits); a singular one that is not :math:`F P F^\top + Q` raises
+    ``numpy.linalg.LinAlgError``."""
     xp = array_namespace(x, P, F)
-    G = matrix_transpose(solve_spd(P_prior_next, mm(F, P)))  # (P^-)^T G^T = F P
+    G = matrix_transpose(_rts_gain_t(xp, P_prior_next, P, F))  # (P^-)^T G^T = F P
     xs = x + mv(G, xs_next - x_prior_next)
     Ps = sym(P + mm(mm(G, Ps_next - P_prior_next), matrix_transpose(G)))
     return xs, Ps, G
@@ -445,10 +487,31 @@ def ekf_update(x, P, z, h, H_jac, R, angles, x_angles=()) -> Update:
 # --------------------------------------------------------------------------------------------
 # unscented transform and filter
 # --------------------------------------------------------------------------------------------
+def _sqrt_psd(xp, A):
+    r"""A square root :math:`L` of :math:`A = L L^\top` (..., n, n): the lower Cholesky factor; on
+    NumPy, where it does not exist (a positive semi-definite ``A``, e.g. a known start ``P = 0``),
+    the symmetric root :math:`V \operatorname{diag}(\sqrt{\lambda}) V^\top` of the eigendecomposition,
+    with eigenvalues within round-off of zero (``|lambda| <= 1e3 n eps max|lambda|``) set to zero.
+    A clearly negative eigenvalue raises ``numpy.linalg.LinAlgError`` as the factorization did."""
+    if not _is_np(A):
+        return xp.linalg.cholesky(A)  # JAX: NaN for a singular A (no value branch inside a trace)
+    try:
+        return np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(A)
+        n = A.shape[-1]
+        tol = 1e3 * n * np.finfo(A.dtype).eps * np.abs(w).max(axis=-1, keepdims=True)
+        if (w < -tol).any():
+            raise np.linalg.LinAlgError(f"the covariance of the sigma points is not positive semi-definite "
+                                        f"(smallest eigenvalue {w.min():.3g})") from None
+        return (V * np.sqrt(np.clip(w, 0.0, None))[..., None, :]) @ V.swapaxes(-1, -2)
+
+
 def sigma_points(x, P, c, Wm, Wc) -> SigmaPoints:
-    r"""Points :math:`x`, :math:`x \pm [\sqrt{cP}]_i` (columns of the lower Cholesky factor)."""
+    r"""Points :math:`x`, :math:`x \pm [\sqrt{cP}]_i` (columns of the lower Cholesky factor; of the
+    symmetric square root where that does not exist, see ``_sqrt_psd``)."""
     xp = array_namespace(x, P)
-    L = xp.linalg.cholesky(c * P)  # lower: columns are the offsets
+    L = _sqrt_psd(xp, c * P)  # lower Cholesky factor: columns are the offsets
     offsets = matrix_transpose(L)  # (..., n, n), row i = column i of L
     zero = xp.zeros(offsets.shape[:-2] + (1, x.shape[-1]), dtype=x.dtype)
     X = x[..., None, :] + xp.concat([zero, offsets, -offsets], axis=-2)
@@ -561,11 +624,3 @@ def mixing_log_weights(log_mu, Pi):
     logw = xp.where(dead[..., None, :], eye, logw)
     return logw, log_cbar
 
-
-def __getattr__(name):
-    # the NumPy time loop moved to kftrack.engines; keep the old import path working
-    if name == "run_sequence":
-        from .engines import run_closures
-
-        return run_closures
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

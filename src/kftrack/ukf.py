@@ -7,7 +7,8 @@ A Gaussian :math:`N(x, P)` is represented by :math:`2n+1` sigma points
     \mathcal X_0 = x, \quad \mathcal X_{i} = x + \left[\sqrt{c P}\right]_i,
     \quad \mathcal X_{n+i} = x - \left[\sqrt{c P}\right]_i, \qquad i = 1..n,
 
-(:math:`[\sqrt{cP}]_i` the ``i``-th column of the lower Cholesky factor) with mean weights
+(:math:`[\sqrt{cP}]_i` the ``i``-th column of the lower Cholesky factor; for a singular
+:math:`P`, of the symmetric square root of its eigendecomposition) with mean weights
 :math:`W^m` and covariance weights :math:`W^c`. The points go through the nonlinear function
 and the weighted moments of the images approximate the transformed mean and covariance:
 
@@ -35,10 +36,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validate import (as_matrix, as_vector, broadcast_batch, call_checked, check_angles, check_covariance, check_points,
+from ._validate import (as_matrix, as_vector, broadcast_batch, call_checked, check_angles, check_covariance,
                         check_sequence, check_state)
-from .kalman import FilterResult, Update
-from .engines import Kernel, check_dtype, drive, to_engine, use_jax
+from .kernels import Update
+from .results import FilterResult
+from .engines import Kernel, run_filter
 from .kernels import SigmaPoints, moments, mv, sigma_points, ukf_predict as _k_predict
 from .kernels import ukf_update as _k_update
 from .kernels import unscented as _k_unscented
@@ -93,7 +95,7 @@ class MerweScaledSigmaPoints:
         return Wm, Wc, c
 
     def __call__(self, x, P) -> SigmaPoints:
-        """Sigma points of :math:`N(x, P)`: ``x`` ``(..., n)``, ``P`` ``(..., n, n)`` positive definite."""
+        """Sigma points of :math:`N(x, P)`: ``x`` ``(..., n)``, ``P`` ``(..., n, n)`` positive semi-definite."""
         x, P, n = _check_points_input(x, P)
         Wm, Wc, c = self.weights(n)
         return sigma_points(x, P, c, Wm, Wc)
@@ -124,7 +126,7 @@ class JulierSigmaPoints:
         return W, W.copy(), c
 
     def __call__(self, x, P) -> SigmaPoints:
-        """Sigma points of :math:`N(x, P)`: ``x`` ``(..., n)``, ``P`` ``(..., n, n)`` positive definite."""
+        """Sigma points of :math:`N(x, P)`: ``x`` ``(..., n)``, ``P`` ``(..., n, n)`` positive semi-definite."""
         x, P, n = _check_points_input(x, P)
         Wm, Wc, c = self.weights(n)
         return sigma_points(x, P, c, Wm, Wc)
@@ -133,12 +135,20 @@ class JulierSigmaPoints:
 Points = MerweScaledSigmaPoints | JulierSigmaPoints
 
 
+def check_points(points) -> Points:
+    """A sigma-point scheme (``None``: the default ``MerweScaledSigmaPoints()``), else a ``TypeError``
+    naming ``points``."""
+    if points is None:
+        return MerweScaledSigmaPoints()
+    if not isinstance(points, (MerweScaledSigmaPoints, JulierSigmaPoints)):
+        raise TypeError(f"points must be MerweScaledSigmaPoints or JulierSigmaPoints, got {type(points).__name__}")
+    return points
+
+
 def _check_points_input(x, P):
-    x, P, n = check_state(x, P)
-    if np.min(np.linalg.eigvalsh(P)[..., 0]) <= 0:
-        raise ValueError("P must be positive definite for the Cholesky factor of the sigma points, "
-                         f"but its smallest eigenvalue is {np.min(np.linalg.eigvalsh(P)[..., 0]):.3g}")
-    return x, P, n
+    """A state and its covariance, positive semi-definite (``P = 0``, a known state, is allowed: the
+    sigma points then use a square root of the eigendecomposition where Cholesky fails)."""
+    return check_state(x, P)
 
 
 def weighted_moments(Y, Wm, Wc, angle_components: Sequence[int] = ()) -> tuple[np.ndarray, np.ndarray]:
@@ -175,7 +185,7 @@ def unscented_transform(fn: Vector, x, P, points: Points | None = None,
     Parameters
     ----------
     fn : callable ``(..., n) -> (..., d)``, broadcasting (it receives ``(..., 2n+1, n)``).
-    x : (..., n) mean; ``P`` (..., n, n) covariance, positive definite.
+    x : (..., n) mean; ``P`` (..., n, n) covariance, positive semi-definite.
     points : :class:`MerweScaledSigmaPoints` (default, ``alpha=1, beta=2, kappa=0``) or
         :class:`JulierSigmaPoints`.
     angle_components : components of ``fn(x)`` that are angles (circular mean, wrapped spread).
@@ -205,7 +215,7 @@ def ukf_predict(x, P, f: Vector, Q, points: Points | None = None,
 
     Parameters
     ----------
-    x, P : (..., n), (..., n, n) state mean and covariance (positive definite).
+    x, P : (..., n), (..., n, n) state mean and covariance (positive semi-definite).
     f : broadcasting transition function ``(..., n) -> (..., n)``.
     Q : (n, n) or (..., n, n) process noise of the step.
     points : sigma-point scheme (default :class:`MerweScaledSigmaPoints`).
@@ -267,7 +277,7 @@ def ukf_update(x, P, z, h: Vector | np.ndarray, R, points: Points | None = None,
 def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector | np.ndarray, R, points: Points | None = None,
                             angle_components: Sequence[int] = (), state_angles: Sequence[int] = (),
                             *, progress: bool = False, dtype=None) -> FilterResult:
-    """Filter a whole measurement sequence with the UKF: update with ``zs[k]``, then predict.
+    r"""Filter a whole measurement sequence with the UKF: update with ``zs[k]``, then predict.
 
     Same conventions as :func:`kftrack.kalman.kalman_filter` and
     :func:`kftrack.ekf.extended_kalman_filter`: time first, ``x0`` the prior of step 0, rows
@@ -278,9 +288,18 @@ def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector | np.ndarray, R,
     :func:`kftrack.kalman.kalman_filter`. With JAX arrays among ``zs``, ``x0``, ``P0``, ``Q``,
     ``R`` the JAX engine runs (JAX arrays out); ``f`` and ``h`` must then be written with
     ``jax.numpy`` (the same function objects reuse the compiled loop); concrete arrays only.
+
+    ``P0`` may be positive semi-definite (a known start, ``P0 = 0``): where the Cholesky factor
+    of :math:`cP` does not exist, the sigma points use the symmetric square root
+    :math:`V \operatorname{diag}(\sqrt{\lambda}) V^\top` of its eigendecomposition (NumPy
+    engine; the JAX engine's Cholesky factor of a singular matrix is NaN).
+
+    **NaN from your functions.** On the NumPy engine the output of ``f`` and ``h`` is checked
+    right after each call (on the sigma points): NaN or inf raises a ``ValueError`` naming the
+    function and the step. The JAX engine cannot check values inside its compiled loop: there a
+    NaN propagates to every later estimate.
     """
-    jax_engine = use_jax(zs, x0, P0, Q, R)
-    dt_ = check_dtype(dtype, jax_engine)
+    sources = (zs, x0, P0, Q, R)  # the caller's arrays choose the engine
     points = check_points(points)
     zs, x0, P0, Q, R, n, m, batch, row_missing = check_sequence(zs, x0, P0, Q, R)
     _check_points_input(x0, P0)
@@ -290,15 +309,15 @@ def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector | np.ndarray, R,
     call_checked(f, xb, "f", (n,))
     call_checked(_measurement(h, n, m), xb, "h", (m,))
     opts = (("points", points), ("x_angles", x_angles))
-    predict = Kernel(_predict, (("f", f),) + opts)
+    user = (("f", "f"), ("h", "h"))
+    predict = Kernel(_predict, (("f", f),) + opts, user)
     if callable(h):
-        update, upd_args = Kernel(_update, (("h", h), ("z_angles", z_angles)) + opts), (R,)
+        update, upd_args = Kernel(_update, (("h", h), ("z_angles", z_angles)) + opts, user), (R,)
     else:  # a linear measurement: H travels as an array (no closure over it)
         H = as_matrix(h, "h", m, n)
         update, upd_args = Kernel(_update_linear, (("z_angles", z_angles),) + opts), (H, R)
-    conv = lambda a: to_engine(a, jax_engine, dt_)  # noqa: E731
-    return drive(jax_engine, conv(zs), conv(row_missing), conv(x0), conv(P0), batch, batch, predict, update,
-                 pred_args=(conv(Q),), upd_args=tuple(map(conv, upd_args)), progress=progress)
+    return run_filter(zs, row_missing, x0, P0, batch, predict, update, pred_args=(Q,), upd_args=upd_args,
+                      sources=sources, dtype=dtype, progress=progress)
 
 
 # adapters from the engines' argument order (x, P, arrays..., static options) to the kernels
