@@ -28,7 +28,7 @@ The state order follows the package (``[x, vx, y, vy]``); ``H`` picks the measur
 """
 from __future__ import annotations
 
-import itertools
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -36,7 +36,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.special import gammaln
 from scipy.stats import chi2
 
-from ._validate import as_float_array, as_vector, check_covariance
+from ._validate import as_float_array, as_vector, check_covariance, check_finite
 from .kalman import update as kalman_update
 
 __all__ = [
@@ -53,15 +53,22 @@ _LOG_2PI = np.log(2.0 * np.pi)
 # --------------------------------------------------------------------------------------------
 # argument checks
 # --------------------------------------------------------------------------------------------
+def _scalar(value, name: str, what: str) -> float:
+    arr = as_float_array(value, name)
+    if arr.ndim != 0:
+        raise ValueError(f"{name} ({what}) must be a scalar, shared by the batch, got an array of shape {arr.shape}")
+    return float(arr)
+
+
 def _check_prob_gate(P_G) -> float:
-    v = float(as_float_array(P_G, "P_G"))
+    v = _scalar(P_G, "P_G", "gate probability")
     if not 0.0 < v < 1.0:
         raise ValueError(f"P_G (gate probability) must lie in the open interval (0, 1), got {P_G!r}")
     return v
 
 
 def _check_prob_detect(P_D) -> float:
-    v = float(as_float_array(P_D, "P_D"))
+    v = _scalar(P_D, "P_D", "detection probability")
     if not 0.0 < v <= 1.0:
         raise ValueError(f"P_D (detection probability) must lie in (0, 1], got {P_D!r}")
     return v
@@ -361,8 +368,8 @@ def pdaf_update(x, P, Z, H, R, *, P_D: float, P_G: float, clutter_density=None, 
     x : (..., n) predicted state; ``P`` (..., n, n) its covariance.
     Z : (..., M_max, m) padded scan; ``mask`` (..., M_max) bool (default all true).
     H : (m, n) measurement matrix; ``R`` (m, m) measurement-noise covariance.
-    P_D : detection probability in (0, 1].
-    P_G : gate probability in (0, 1).
+    P_D : detection probability, a scalar in (0, 1] (shared by the batch).
+    P_G : gate probability, a scalar in (0, 1).
     clutter_density : Poisson clutter density :math:`\lambda` per unit measurement volume
         (scalar or broadcasting over ``...``; ``>= 0``) for the parametric PDAF, or ``None`` for
         the non-parametric PDAF (:math:`\lambda = m_k/V`).
@@ -427,83 +434,194 @@ def imm_pdaf_update(estimator, state, Z, *, P_D: float, P_G: float, clutter_dens
 # --------------------------------------------------------------------------------------------
 # several targets: GNN and JPDA
 # --------------------------------------------------------------------------------------------
-def gnn_assignment(cost, gate_mask) -> np.ndarray:
-    r"""Global nearest neighbour: the one-to-one assignment of tracks to gated measurements that
-    minimises the total cost, each track free to take no measurement.
+def gnn_assignment(cost, gate_mask, miss_cost=None) -> np.ndarray:
+    r"""Global nearest neighbour: the one-to-one assignment of tracks to gated measurements of least
+    total cost, each track free to take no measurement at a price (a non-assignment cost per
+    track, Blackman & Popoli 1999).
+
+    It solves, over the assignments :math:`a` (``a[i]`` a gated measurement or -1, no measurement
+    to two tracks),
+
+    .. math:: \min_a \sum_{i:\,a_i \ge 0} C_{i a_i} + \sum_{i:\,a_i = -1} c^{\text{miss}}_i .
 
     Parameters
     ----------
-    cost : (T, M) cost of giving measurement ``j`` to track ``i`` (e.g. ``d2 + log|S|``).
+    cost : (T, M) cost of giving measurement ``j`` to track ``i`` (e.g. ``d2 + log|S|``); finite
+        where gated (ignored elsewhere).
     gate_mask : (T, M) bool, true where measurement ``j`` is in track ``i``'s gate.
+    miss_cost : scalar or (T,), the cost of leaving track ``i`` without a measurement. Default:
+        the gate's edge taken as the largest gated cost + 1 (0 if nothing is gated), above every
+        gated cost, so a track alone with its gated measurements always takes one; a track gives
+        up its measurement only when another track's gain pays for it. :func:`gnn_filter` passes
+        each track's own gate edge, :math:`\gamma + \log|S_i|`.
 
     Returns
     -------
-    (T,) int: the measurement of each track, -1 for none. Solved with
-    ``scipy.optimize.linear_sum_assignment`` on the cost matrix extended by one "no
-    measurement" column per track, of cost equal to the gate's edge (the largest gated cost + 1).
-    One problem at a time: ``linear_sum_assignment`` has no batch axis, so :func:`gnn_filter`
-    calls this once per run and scan (a Python loop over runs, unlike the single-target
-    functions of this module).
+    (T,) int: the measurement of each track, -1 for none. Solved exactly with
+    ``scipy.optimize.linear_sum_assignment`` on the (T, M + T) matrix ``[C | diag(miss_cost)]``,
+    non-gated pairs and off-diagonal "miss" entries forbidden (``inf``). One problem at a time:
+    ``linear_sum_assignment`` has no batch axis, so :func:`gnn_filter` calls this once per run
+    and scan (a Python loop over runs, unlike the single-target functions of this module).
+
+    Examples
+    --------
+    >>> gnn_assignment([[5.0, 0.0], [0.0, 10.0]], [[True, False], [True, True]]).tolist()
+    [-1, 0]
     """
     cost = as_float_array(cost, "cost")
-    gate_mask = np.asarray(gate_mask, dtype=bool)
+    gate_mask = np.asarray(gate_mask)
+    if gate_mask.dtype != bool:
+        raise TypeError(f"gate_mask must be a boolean array (True = gated pair), got dtype {gate_mask.dtype}")
     if cost.ndim != 2 or gate_mask.shape != cost.shape:
         raise ValueError(f"cost and gate_mask must both have shape (T, M), got {cost.shape} and {gate_mask.shape}")
     T, M = cost.shape
-    finite = cost[gate_mask]
-    big = (np.max(np.abs(finite)) + 1.0) * 4.0 if finite.size else 1.0
-    dummy = big / 2.0
-    C = np.full((T, M + T), 10.0 * big)
-    C[:, :M] = np.where(gate_mask, cost, 10.0 * big)
-    C[np.arange(T), M + np.arange(T)] = dummy
+    if not np.all(np.isfinite(cost[gate_mask])):
+        raise ValueError("cost must be finite where gate_mask is true")
+    if miss_cost is None:
+        miss = np.full(T, float(np.max(cost[gate_mask])) + 1.0 if gate_mask.any() else 0.0)
+    else:
+        miss = as_float_array(miss_cost, "miss_cost")
+        if miss.ndim > 1 or (miss.ndim == 1 and miss.shape != (T,)):
+            raise ValueError(f"miss_cost must be a scalar or have shape ({T},) (one per track), got shape {miss.shape}")
+        if not np.all(np.isfinite(miss)):
+            raise ValueError("miss_cost must be finite")
+        miss = np.broadcast_to(miss, (T,))
+    C = np.full((T, M + T), np.inf)
+    C[:, :M] = np.where(gate_mask, cost, np.inf)
+    C[np.arange(T), M + np.arange(T)] = miss
     rows, cols = linear_sum_assignment(C)
     out = np.full(T, -1, dtype=int)
-    for r_, c_ in zip(rows, cols):
-        if c_ < M and gate_mask[r_, c_]:
-            out[r_] = c_
+    take = cols < M
+    out[rows[take]] = cols[take]
     return out
 
 
-def _hypotheses(T: int, M: int) -> np.ndarray:
-    """All joint association events of ``T`` targets and ``M`` measurements: rows of
-    ``a[t] in {0 (missed), 1..M}`` with the non-zero entries distinct."""
-    rows = [a for a in itertools.product(range(M + 1), repeat=T)
-            if len([v for v in a if v]) == len({v for v in a if v})]
-    return np.array(rows, dtype=int).reshape(-1, T)
+def _gating_clusters(inside: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Gating clusters of one scan: ``inside`` (T, M) bool -> list of ``(targets, measurements)``
+    index arrays, the connected parts of the graph joining a target to its gated measurements.
+    Targets without a gated measurement are left out (they are missed with probability 1)."""
+    A_ = inside.astype(np.int64)
+    reach = (A_ @ A_.T) > 0  # targets sharing a measurement (and each gating target with itself)
+    while True:  # transitive closure by squaring, at most log2(T) steps
+        nxt = (reach.astype(np.int64) @ reach.astype(np.int64)) > 0
+        if np.array_equal(nxt, reach):
+            break
+        reach = nxt
+    out, seen = [], np.zeros(len(inside), dtype=bool)
+    for t in np.flatnonzero(inside.any(1)):
+        if not seen[t]:
+            ts = np.flatnonzero(reach[t])
+            seen[ts] = True
+            out.append((ts, np.flatnonzero(inside[ts].any(0))))
+    return out
+
+
+def _count_events(adj: tuple[tuple[int, ...], ...], limit: int) -> tuple[int, bool]:
+    """Number of joint events of a cluster (each target one of its gated measurements ``adj[t]``
+    or none, no measurement twice), by dynamic programming over the targets on the set of
+    measurements still needed later. Returns ``(count, exact)``; once the partial count (a lower
+    bound) exceeds ``limit`` and the table grows past 4096 sets, ``(lower bound, False)``."""
+    last = {}
+    for t, js in enumerate(adj):
+        for j in js:
+            last[j] = t
+    states = {0: 1}
+    for t, js in enumerate(adj):
+        new: dict[int, int] = {}
+        done = sum(1 << j for j in js if last[j] == t)  # bits no later target can use: forget them
+        for used, c in states.items():
+            key = used & ~done
+            new[key] = new.get(key, 0) + c
+            for j in js:
+                if not used >> j & 1:
+                    key = (used | 1 << j) & ~done
+                    new[key] = new.get(key, 0) + c
+        states = new
+        if len(states) > 4096 and sum(states.values()) > limit:
+            return sum(states.values()), False
+    return sum(states.values()), True
+
+
+def _cluster_events(adj: tuple[tuple[int, ...], ...]) -> np.ndarray:
+    """The joint events of a cluster, ``(E, T_c)`` int: ``1 + j`` (local measurement ``j``) or 0
+    (missed), no measurement twice."""
+    rows: list[tuple[int, ...]] = []
+
+    def grow(t, used, prefix):
+        if t == len(adj):
+            rows.append(prefix)
+            return
+        grow(t + 1, used, prefix + (0,))
+        for j in adj[t]:
+            if j not in used:
+                grow(t + 1, used | {j}, prefix + (1 + j,))
+
+    grow(0, frozenset(), ())
+    out = np.array(rows, dtype=int).reshape(-1, len(adj))
+    out.setflags(write=False)
+    return out
+
+
+_small_cluster_events = functools.lru_cache(maxsize=1024)(_cluster_events)  # clusters of <= 256 events
+
+
+def _too_many_events(count, exact, n_targets, n_meas, b, batch, max_events):
+    size = (f"{count}" if count < 10**7 else f"{count:.3g}") if exact else f"at least {count:.3g}"
+    where = f" (run {tuple(int(i) for i in np.unravel_index(b, batch))})" if batch else ""
+    raise ValueError(
+        f"jpda_update would enumerate {size} joint events in one gating cluster of {n_targets} targets and "
+        f"{n_meas} measurements{where}, above max_events = {max_events}: gate tighter (smaller P_G), "
+        "separate the targets, update each target with pdaf_update, assign with gnn_assignment, "
+        "or raise max_events")
 
 
 class JPDAUpdate(NamedTuple):
     """JPDA result for ``T`` targets: ``x`` (..., T, n), ``P`` (..., T, n, n), marginal
     association probabilities ``beta`` (..., T, M_max + 1) (column 0: missed), the per-target
-    ``gates`` (a :class:`Gate` with batch axes (..., T)) and the number of joint events."""
+    ``gates`` (a :class:`Gate` with batch axes (..., T)) and ``n_events`` (...) int, the number of
+    joint events enumerated (summed over the gating clusters)."""
 
     x: np.ndarray
     P: np.ndarray
     beta: np.ndarray
     gate: Gate
-    n_events: int
+    n_events: np.ndarray
 
 
-def jpda_update(xs, Ps, Z, H, R, *, P_D: float, P_G: float, clutter_density, mask=None) -> JPDAUpdate:
-    r"""Joint probabilistic data association for a few targets, by exact enumeration of the joint
-    events (Fortmann, Bar-Shalom & Scheffe 1983).
+def jpda_update(xs, Ps, Z, H, R, *, P_D: float, P_G: float, clutter_density, mask=None,
+                max_events: int = 100_000) -> JPDAUpdate:
+    r"""Joint probabilistic data association by exact enumeration of the joint events (Fortmann,
+    Bar-Shalom & Scheffe 1983), cluster by cluster.
 
     A joint event gives each target one gated measurement or none, no measurement to two
     targets; its probability is proportional to
     :math:`\prod_{t\,\text{missed}}(1 - P_D P_G)\prod_{t \to j} P_D N(\nu_{tj}; 0, S_t)/\lambda`.
-    The marginals :math:`\beta_{tj}` then drive a PDAF-form update of each target.
+    The marginals :math:`\beta_{tj}` then drive a PDAF-form update of each target. The targets
+    split into **gating clusters** (targets linked through shared gated measurements); the events
+    are products of independent events of the clusters, so each cluster is enumerated alone and
+    the marginals are exact.
 
     Parameters
     ----------
     xs : (..., T, n) predicted states; ``Ps`` (..., T, n, n).
     Z : (..., M_max, m) padded scan shared by the targets; ``mask`` (..., M_max).
     H, R : as in :func:`pdaf_update`; ``clutter_density`` the parametric :math:`\lambda > 0`.
+    max_events : the largest number of joint events one cluster may have. The count grows like
+        :math:`M^T` within a cluster (12 targets gating the same 12 measurements: about
+        :math:`5\times10^{10}`); above ``max_events`` a ``ValueError`` gives the count and what
+        to do instead. The default, :math:`10^5`, enumerates in a fraction of a second (0.3 s
+        on the development machine; :math:`1.4\times10^6` events took 3.7 s).
 
-    The number of events grows like :math:`M^T`: use for ``T <= 3`` and modest ``M_max``.
+    Notes
+    -----
+    Python loops over the runs ``...`` and the clusters (the clusters differ between runs); the
+    enumeration of a small cluster's events is cached by its gating pattern.
     """
     P_D, P_G, lam = _check_prob_detect(P_D), _check_prob_gate(P_G), _check_density(clutter_density)
     if lam is None or np.any(lam <= 0):
         raise ValueError(f"clutter_density must be > 0 for JPDA, got {clutter_density!r}")
+    if isinstance(max_events, bool) or int(max_events) != max_events or max_events < 1:
+        raise ValueError(f"max_events must be a positive integer, got {max_events!r}")
     xs = as_vector(xs, "xs")
     if xs.ndim < 2:
         raise ValueError(f"xs must have shape (..., T, n), got shape {xs.shape}")
@@ -512,15 +630,36 @@ def jpda_update(xs, Ps, Z, H, R, *, P_D: float, P_G: float, clutter_density, mas
     g, u = _gate(x, P, Zc[..., None, :, :], mask[..., None, :], H, R, P_G)
     logL0, logL, _, _ = _log_pda_terms(g, P_D, P_G, np.asarray(lam)[..., None])
     table = np.concatenate([logL0[..., None], logL], axis=-1)  # (..., T, M + 1)
-    ev = _hypotheses(T, M)  # (E, T)
-    logw = np.zeros(table.shape[:-2] + (ev.shape[0],))
-    for t in range(T):
-        logw = logw + table[..., t, :][..., ev[:, t]]
-    w = np.exp(logw - _logsumexp(logw)[..., None])  # (..., E)
-    onehot = (ev[:, :, None] == np.arange(M + 1)).astype(float)  # (E, T, M + 1)
-    beta = np.einsum("...e,etj->...tj", w, onehot)
+    batch = table.shape[:-2]
+    table = table.reshape((-1, T, M + 1))
+    inside = np.broadcast_to(g.inside, batch + (T, M)).reshape((-1, T, M))
+    # runs where no measurement is in two gates: every target is its own cluster, whose events
+    # are "missed" or one gated measurement, so its marginals are its own normalised weights
+    beta = np.exp(table - _logsumexp(table)[..., None])
+    n_events = np.where(inside.any(-1), 1 + inside.sum(-1), 0).sum(-1)
+    if max_events < 1 + inside.sum(-1).max(initial=0):  # (only a tiny max_events: a cluster of one target)
+        b, t = np.unravel_index(np.argmax(inside.sum(-1)), inside.shape[:2])
+        _too_many_events(1 + int(inside[b, t].sum()), True, 1, int(inside[b, t].sum()), b, batch, max_events)
+    for b in np.flatnonzero((inside.sum(-2) > 1).any(-1)):
+        beta[b] = 0.0
+        beta[b, :, 0] = 1.0  # targets outside every cluster: missed
+        n_events[b] = 0
+        for ts, js in _gating_clusters(inside[b]):
+            local = {int(j): k for k, j in enumerate(js)}
+            adj = tuple(tuple(local[int(j)] for j in np.flatnonzero(inside[b, t])) for t in ts)
+            count, exact = _count_events(adj, int(max_events))
+            if count > max_events:
+                _too_many_events(count, exact, len(ts), len(js), b, batch, max_events)
+            ev = (_small_cluster_events if count <= 256 else _cluster_events)(adj)  # (E, T_c), local
+            cols = np.concatenate([[0], 1 + js])[ev]  # (E, T_c), columns of table
+            logw = table[b, ts[None, :], cols].sum(-1)
+            w = np.exp(logw - _logsumexp(logw))
+            for k, t in enumerate(ts):
+                beta[b, t] = np.bincount(cols[:, k], weights=w, minlength=M + 1)
+            n_events[b] += len(ev)
+    beta = beta.reshape(batch + (T, M + 1))
     xp, Pp, _ = _pda_combine(x, P, u, g.nu, beta)
-    return JPDAUpdate(xp, Pp, beta, g, int(ev.shape[0]))
+    return JPDAUpdate(xp, Pp, beta, g, n_events.reshape(batch))
 
 
 # --------------------------------------------------------------------------------------------
@@ -543,6 +682,8 @@ def _check_sets(X, Y, c, p):
     if X.ndim != 2 or Y.ndim != 2 or X.shape[1] != Y.shape[1]:
         raise ValueError(f"truth and estimate must be sets of points (N, d) and (M, d) of the same width d, "
                          f"got shapes {X.shape} and {Y.shape}")
+    check_finite(X, "truth")
+    check_finite(Y, "estimate")
     if not (np.isfinite(c) and c > 0):
         raise ValueError(f"c (cut-off distance) must be finite and > 0, got {c!r}")
     if not (np.isfinite(p) and p >= 1):
@@ -694,8 +835,9 @@ def jpda_filter(scans, x0, P0, F, Q, H, R, *, P_G: float, P_D: float, clutter_de
 
 def gnn_filter(scans, x0, P0, F, Q, H, R, *, P_G: float):
     r"""Track ``T`` targets with global nearest neighbour through a scan sequence: per scan and
-    run, :func:`gnn_assignment` with cost :math:`d^2 + \log|S|` on the gated pairs, then a Kalman
-    update of each assigned track (the prediction for a track left without a measurement).
+    run, :func:`gnn_assignment` with cost :math:`d^2 + \log|S_i|` on the gated pairs and, for a
+    track left without a measurement, the cost of its gate's edge :math:`\gamma + \log|S_i|`;
+    then a Kalman update of each assigned track (the prediction for the others).
 
     ``x0`` (N, T, n) for N runs (one batch axis), ``P0`` (N, T, n, n). **The assignment
     is a Python loop over the runs** (``linear_sum_assignment`` solves one problem at a time, so
@@ -711,8 +853,9 @@ def gnn_filter(scans, x0, P0, F, Q, H, R, *, P_G: float):
             x, P = _predict(x, P, F, Q)
         Z, mask = check_scan(scan[0], scan[1], H.shape[0])
         g, u = _gate(x, P, Z[:, None], mask[:, None], H, R, P_G)
-        cost = g.d2 + np.linalg.slogdet(g.S)[1][..., None]
-        idx = np.stack([gnn_assignment(cost[r], g.inside[r]) for r in range(x.shape[0])])
+        logdet = np.linalg.slogdet(g.S)[1]
+        cost, edge = g.d2 + logdet[..., None], g.gamma + logdet  # edge: the cost on each track's gate
+        idx = np.stack([gnn_assignment(cost[r], g.inside[r], edge[r]) for r in range(x.shape[0])])
         upd = _select_update(x, P, g, u, idx)
         x, P = upd.x, upd.P
         xs.append(x)

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import stats
 
-from ._validate import as_float_array, as_matrix, as_vector, check_covariance, check_finite
+from ._validate import as_float_array, as_matrix, as_vector, broadcast_batch, check_covariance, check_finite
 
 __all__ = ["rmse", "nees", "nis", "anees", "chi2_bounds", "Consistency", "consistency", "PCRLB", "pcrlb",
            "running_rms", "mean_running_rms"]
@@ -33,15 +33,36 @@ def rmse(truth, estimate, axis=None, *, vector: bool = False) -> np.ndarray:
     vector : if True the last axis holds the components of one vector error, which are
         summed before averaging: :math:`\sqrt{\operatorname{mean}\lVert e\rVert^2}`
         (e.g. a 2-D position RMSE). ``axis`` then refers to the remaining axes.
+
+    ``truth`` and ``estimate`` must be finite (a NaN raises ``ValueError``: drop the missing
+    entries, or the lost runs, before calling) and hold at least one value.
     """
-    tru = as_float_array(truth, "truth")
-    est = as_float_array(estimate, "estimate")
+    tru = check_finite(as_float_array(truth, "truth"), "truth")
+    est = check_finite(as_float_array(estimate, "estimate"), "estimate")
     try:
         err = est - tru
     except ValueError:
         raise ValueError(f"truth and estimate must have matching shapes, got {tru.shape} and {est.shape}") from None
+    if err.size == 0:
+        raise ValueError(f"truth and estimate must hold at least one value, got shapes {tru.shape} and {est.shape}")
+    if vector and err.ndim == 0:
+        raise ValueError("with vector=True, truth and estimate must have shape (..., d), got scalars")
     sq = np.sum(err**2, axis=-1) if vector else err**2
-    return np.sqrt(np.mean(sq, axis=axis))
+    return np.sqrt(np.mean(sq, axis=_check_axis(axis, sq.ndim, "the error" + (" (vector=True: last axis summed)" if vector else ""))))
+
+
+def _check_axis(axis, ndim: int, what: str):
+    """``None``, an int or a tuple of ints, each in ``[-ndim, ndim)``; else ``ValueError`` naming ``axis``."""
+    if axis is None:
+        return None
+    axes = axis if isinstance(axis, tuple) else (axis,)
+    for a in axes:
+        if isinstance(a, bool) or not isinstance(a, (int, np.integer)):
+            raise TypeError(f"axis must be None, an int or a tuple of ints, got {axis!r}")
+        if not -ndim <= a < ndim:
+            raise ValueError(f"axis {a} is out of range for {what} of {ndim} dimension(s) "
+                             f"(valid: {-ndim} to {ndim - 1}), got axis={axis!r}")
+    return axis
 
 
 def _mahalanobis2(e: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -57,6 +78,7 @@ def nees(truth, estimate, P) -> np.ndarray:
     n = est.shape[-1]
     tru = as_vector(truth, "truth", n)
     P = check_covariance(P, "P", n, positive_definite=True)
+    broadcast_batch({"truth": tru.shape[:-1], "estimate": est.shape[:-1], "P": P.shape[:-2]})
     return _mahalanobis2(tru - est, P)
 
 
@@ -64,6 +86,7 @@ def nis(y, S) -> np.ndarray:
     r"""Normalized innovation squared :math:`y^\top S^{-1} y`; ``y`` ``(..., m)``, ``S`` ``(..., m, m)``."""
     y = as_vector(y, "y")
     S = check_covariance(S, "S", y.shape[-1], positive_definite=True)
+    broadcast_batch({"y": y.shape[:-1], "S": S.shape[:-2]})
     return _mahalanobis2(y, S)
 
 
@@ -76,6 +99,7 @@ def anees(nees_values, dim: int, axis: int = 0) -> np.ndarray:
     if int(dim) != dim or dim < 1:
         raise ValueError(f"dim must be a positive integer, got {dim!r}")
     values = as_float_array(nees_values, "nees_values")
+    axis = _check_axis(axis, values.ndim, f"nees_values of shape {values.shape}")
     if np.isinf(values).any() or (values < 0).any():
         raise ValueError("nees_values must be non-negative and finite (NEES values), "
                          f"got a minimum of {np.nanmin(values):.3g} and a maximum of {np.nanmax(values):.3g}")
