@@ -305,6 +305,47 @@ def test_unbiased_mixing_across_dimensions():
     assert np.all(np.linalg.eigvalsh(out.P) > 0)
 
 
+def test_combination_with_a_full_mode_holding_the_components_permuted():
+    """A full mode may hold the common components in another order (here [omega, x, vx, y, vy]
+    = common (4, 0, 1, 2, 3)): the combined output completes the CV mode with that mode's
+    omega, read in the common order (it used to take the component at the same position)."""
+    rng = np.random.default_rng(12)
+    mu = np.array([0.4, 0.6])
+    xa, Pa = rng.normal(size=4), _spd(rng, 4)
+    xb, Pb = rng.normal(size=5), _spd(rng, 5)
+    est = imm.IMM([StubMode(4), StubMode(5)], np.eye(2), mu, components=[(0, 1, 2, 3), (4, 0, 1, 2, 3)])
+    s = est.from_modes([xa, xb], [Pa, Pb], mu)
+    order = [1, 2, 3, 4, 0]  # mode b's positions of the common components 0..4
+    xb_c, Pb_c = xb[order], Pb[np.ix_(order, order)]
+    xa_c = np.append(xa, xb_c[4])
+    Pa_c = np.zeros((5, 5))
+    Pa_c[:4, :4], Pa_c[4, 4] = Pa, Pb_c[4, 4]
+    x, P = imm.mix_gaussians(mu, np.stack([xa_c, xb_c]), np.stack([Pa_c, Pb_c]))
+    np.testing.assert_allclose(s.x, x, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(s.P, P, rtol=1e-13, atol=1e-13)
+
+
+def test_imm_filter_takes_np_diff_of_the_timestamps_and_the_timestamps():
+    """dt of length T - 1 (np.diff(t)) or times=t: the same intervals, the same bits."""
+    rng = np.random.default_rng(13)
+    est = imm.IMM([imm.KalmanMode(_cv(), R2), imm.KalmanMode(models.KnownTurn(0.05, q=0.1), R2)],
+                  imm.SojournTransition([20.0, 20.0]), [0.5, 0.5])
+    t = np.cumsum(rng.uniform(0.5, 1.5, 30))
+    zs = rng.normal(scale=10.0, size=(30, 3, 2))
+    x0, P0 = np.zeros(4), 100.0 * np.eye(4)
+    ref = imm.imm_filter(est, zs, x0, P0, np.append(np.diff(t), 7.0))  # the last interval is never used
+    for res in (imm.imm_filter(est, zs, x0, P0, np.diff(t)), imm.imm_filter(est, zs, x0, P0, times=t)):
+        np.testing.assert_array_equal(res.x, ref.x)
+        np.testing.assert_array_equal(res.P, ref.P)
+        np.testing.assert_array_equal(res.mu, ref.mu)
+    with pytest.raises(ValueError, match="dt and times"):
+        imm.imm_filter(est, zs, x0, P0, 1.0, times=t)
+    with pytest.raises(ValueError, match="times"):
+        imm.imm_filter(est, zs, x0, P0, times=t[::-1])
+    with pytest.raises(TypeError, match="dt"):
+        imm.imm_filter(est, zs, x0, P0)
+
+
 def test_cv_and_ekf_coordinated_turn_bank_runs_batched():
     rng = np.random.default_rng(9)
     cv = _cv(0.05)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from kftrack import imm, kalman, models
+from kftrack import imm, kalman, models, scenarios
 from kftrack.montecarlo import paired_difference, per_run_error
 
 EPS = np.finfo(float).eps
@@ -173,9 +173,13 @@ def test_mode_conditioned_outputs_combine_to_the_output(study):
 
 
 def test_last_step_is_the_filter(study):
+    """At T - 1 the smoother is the filter, to the last bit (it reports the filter's numbers)."""
     sm, res = study["sm"], study["res"]
-    np.testing.assert_allclose(sm.x[-1], res.x[-1], rtol=0, atol=1e-12 * np.abs(res.x[-1]).max())
-    np.testing.assert_allclose(sm.mu[-1], res.mu[-1], rtol=0, atol=1e-14)
+    for name in ("x", "P", "mu"):
+        np.testing.assert_array_equal(getattr(sm, name)[-1], getattr(res, name)[-1])
+    for i in range(2):
+        np.testing.assert_array_equal(sm.xs[i][-1], res.xs[i][-1])
+        np.testing.assert_array_equal(sm.Ps[i][-1], res.Ps[i][-1])
 
 
 def test_dt_matters(study):
@@ -200,18 +204,39 @@ def test_errors_name_the_argument(study):
     with pytest.raises(ValueError, match="result"):
         imm.imm_smoother(est, res._replace(xs=res.xs[:1], Ps=res.Ps[:1]), dts)
     with pytest.raises(ValueError, match="dt"):
-        imm.imm_smoother(est, res, dts[:-1])
+        imm.imm_smoother(est, res, dts[:-2])  # (T - 1,) is np.diff of the timestamps: legal
     with pytest.raises(ValueError, match="dt"):
         imm.imm_smoother(est, res, -1.0)
-    ct = models.CoordinatedTurn(q=0.05, q_omega=1e-4)
-    ekf = imm.IMM([imm.KalmanMode(CV, R2), imm.EKFMode(ct, R2)], np.eye(2) * 0.9 + 0.05, [0.5, 0.5])
-    with pytest.raises(TypeError, match=r"estimator\.modes\[1\]"):
-        imm.imm_smoother(ekf, res, dts)
-    ca = models.ConstantAcceleration(ndim=2, q=0.1)  # 6 states beside 4: different dimension
+    with pytest.raises(ValueError, match="dt and times"):
+        imm.imm_smoother(est, res, dts, times=np.arange(T, dtype=float))
+    with pytest.raises(ValueError, match="times"):
+        imm.imm_smoother(est, res, times=np.arange(T, dtype=float)[::-1])
+
+    class Bare:  # follows the Mode protocol, but offers no transition matrix for the backward pass
+        def __init__(self, mode):
+            self.n, self.R, self.predict, self.update = mode.n, mode.R, mode.predict, mode.update
+
+    bare = imm.IMM([est.modes[0], Bare(est.modes[1])], np.eye(2) * 0.9 + 0.05, [0.5, 0.5])
+    with pytest.raises(TypeError, match=r"estimator\.modes\[1\].*predict_linearized"):
+        imm.imm_smoother(bare, res, dts)
+    ca = models.ConstantAcceleration(ndim=2, q=0.1)  # 6 states beside 4: the shapes of res do not fit
     mixed = imm.IMM([imm.KalmanMode(CV, R2), imm.KalmanMode(ca, R2)], np.eye(2) * 0.9 + 0.05, [0.5, 0.5],
                     components=[(0, 1, 3, 4), tuple(range(6))])
-    with pytest.raises(ValueError, match="estimator"):
+    with pytest.raises(ValueError, match=r"result\.xs\[1\]"):
         imm.imm_smoother(mixed, res, dts)
+
+
+def test_dt_of_length_t_minus_1_and_timestamps(study):
+    """dt as np.diff of the timestamps (T - 1 intervals; the last interval is never used) gives
+    the same bits as the T intervals, and times=t the same bits as dt=np.diff(t)."""
+    est, res, dts, ref = study["est"], study["res"], study["dts"], study["sm"]
+    sm = imm.imm_smoother(est, res, dts[:-1])
+    for name in ("x", "P", "mu"):
+        np.testing.assert_array_equal(getattr(sm, name), getattr(ref, name))
+    t = np.concatenate([[0.0], np.cumsum(dts[:-1])])
+    a, b = imm.imm_smoother(est, res, times=t), imm.imm_smoother(est, res, np.diff(t))
+    np.testing.assert_array_equal(a.x, b.x)
+    np.testing.assert_array_equal(a.P, b.P)
 
 
 # --------------------------------------------------------------------------------------------
@@ -326,3 +351,200 @@ def test_matches_kim_equations_written_out_with_asymmetric_transition():
         # power: the same reference with the transposed Pi is far off
         mu_t, _ = _kim_reference(res, mdl, Pi.T, dts, run)
         assert np.max(np.abs(mu_t - mu)) > 1e3 * tol
+
+
+# --------------------------------------------------------------------------------------------
+# nonlinear modes and modes of different dimension (the bank the imm module docstring shows)
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("Mode", [imm.EKFMode, imm.UKFMode])
+def test_one_nonlinear_mode_on_a_linear_model_is_the_rts_smoother(Mode):
+    """On a linear model the EKF's Jacobian and the UKF's statistical linearization are both
+    F(dt): the IMM smoother of one such mode is the RTS smoother. Round-off: the EKF mode runs
+    the same products (~ 10 n cond(P^-) eps per backward step, over T steps, as above); the UKF
+    mode's unscented moments and C^T P^+ add a few n eps cond(P) per step, the same order."""
+    rng = np.random.default_rng(5)
+    zs = rng.normal(scale=20.0, size=(60, 4, 2))
+    dt = 1.3
+    est = imm.IMM([Mode(CT, R2)], np.eye(1), [1.0])
+    res = imm.imm_filter(est, zs, X0, P0, dt)
+    sm = imm.imm_smoother(est, res, dt)
+    kf = kalman.kalman_filter(zs, X0, P0, CT.F(dt), CT.Q(dt), CT.H, R2)
+    rts = kalman.rts_smoother(kf, CT.F(dt))
+    cond = max(np.linalg.cond(kf.P_prior).max(), np.linalg.cond(kf.P).max())
+    tol = 10 * 60 * 4 * cond * EPS
+    assert np.max(np.abs(sm.x - rts.x)) <= tol * np.max(np.abs(rts.x))
+    assert np.max(np.abs(sm.P - rts.P)) <= tol * np.max(np.abs(rts.P))
+
+
+def _cv_with_heading_state():
+    """A 5-state linear model, state [w, x, vx, y, vy]: CV plus a random walk w that nothing
+    measures and that does not enter the motion (decoupled)."""
+    from types import SimpleNamespace
+
+    block = lambda a, b: np.block([[a, np.zeros((1, 4))], [np.zeros((4, 1)), b]])  # noqa: E731
+    return SimpleNamespace(n=5, F=lambda dt: block(np.eye(1), CT.F(dt)),
+                           Q=lambda dt: block(np.array([[0.01 * dt]]), CT.Q(dt)),
+                           H=np.hstack([np.zeros((2, 1)), CT.H]))
+
+
+def test_modes_of_different_dimension_with_a_decoupled_component_and_permuted_order():
+    """CV (common components 0-3) beside a turn mode holding [w, x, vx, y, vy] = common
+    (4, 0, 1, 2, 3), where w is decoupled and never measured: on components 0-3 the mixed bank
+    must smooth exactly as the two-mode bank without w (the completion, the pair space and the
+    index maps then add zeros, up to round-off). Round-off: different matrix sizes change the
+    BLAS summation order, ~ 10 n cond(P) eps per step over T steps."""
+    dts, _, _, zs = _scenario(runs=20)
+    trans = imm.SojournTransition([20.0, 20.0])
+    small = imm.IMM([imm.KalmanMode(CV, R2), imm.KalmanMode(CT, R2)], trans, [0.5, 0.5])
+    big = imm.IMM([imm.KalmanMode(CV, R2), imm.KalmanMode(_cv_with_heading_state(), R2)], trans, [0.5, 0.5],
+                  components=[(0, 1, 2, 3), (4, 0, 1, 2, 3)])
+    P0_5 = np.zeros((5, 5))
+    P0_5[:4, :4], P0_5[4, 4] = P0, 0.3
+    x0_5 = np.append(X0, 0.7)
+    rs, rb = imm.imm_filter(small, zs, X0, P0, dts), imm.imm_filter(big, zs, x0_5, P0_5, dts)
+    ss, sb = imm.imm_smoother(small, rs, dts), imm.imm_smoother(big, rb, dts)
+    cond = max(np.linalg.cond(p).max() for p in rs.Ps)
+    tol = 10 * T * 5 * cond * EPS
+    assert np.max(np.abs(sb.x[..., :4] - ss.x)) <= tol * np.abs(ss.x).max()
+    assert np.max(np.abs(sb.P[..., :4, :4] - ss.P)) <= tol * np.abs(ss.P).max()
+    assert np.max(np.abs(sb.mu - ss.mu)) <= tol
+    assert np.max(np.abs(sb.xs[1][..., 1:] - ss.xs[1])) <= tol * np.abs(ss.x).max()
+    # w: nothing measures it, so it stays at its prior mean (its cross-covariances are round-off:
+    # mixing weights that sum to 1 within a few eps). Before the fix of IMM._combine for a full
+    # mode holding the components permuted, the combined w was filled from the wrong component.
+    assert np.max(np.abs(sb.x[..., 4] - 0.7)) <= tol
+    assert np.max(np.abs(rb.x[..., 4] - 0.7)) <= tol
+
+
+CTN = models.CoordinatedTurn(ndim=2, q=0.05, q_omega=1e-3)
+
+
+def _kim_reference_mixed(res, dts, Pi, run):
+    """Kim's recursion for the bank CV (4 states) + CT-EKF (5 states), one run, written out
+    pair by pair with explicit completions and inverses (independent of kftrack.imm's index
+    maps): pair CV -> CT completes x^CV with CT's own omega estimate (zero cross-covariance),
+    pair CT -> CV runs CV's F on the first 4 components and smooths omega through its covariance."""
+    Tn = res.mu.shape[0]
+    mu = np.empty((Tn, 2))
+    mu[-1] = res.mu[-1, run]
+    xs = [[None, None] for _ in range(Tn)]
+    xs[-1] = [res.xs[0][-1, run], res.xs[1][-1, run]]
+    Ps = [[None, None] for _ in range(Tn)]
+    Ps[-1] = [res.Ps[0][-1, run], res.Ps[1][-1, run]]
+    for k in range(Tn - 2, -1, -1):
+        d = dts[k]
+        joint = np.array([[mu[k + 1, j] * res.mu[k, run, i] * Pi[i, j] / res.mu_prior[k + 1, run, j]
+                           for j in range(2)] for i in range(2)])
+        mu[k] = joint.sum(1)
+        xa, Pa = res.xs[0][k, run], res.Ps[0][k, run]  # CV at k
+        xb, Pb = res.xs[1][k, run], res.Ps[1][k, run]  # CT at k
+        pairs = [[None, None], [None, None]]
+        Fcv, Qcv = CV.F(d), CV.Q(d)
+        # CV -> CV
+        Pp = Fcv @ Pa @ Fcv.T + Qcv
+        G = Pa @ Fcv.T @ np.linalg.inv(Pp)
+        pairs[0][0] = (xa + G @ (xs[k + 1][0] - Fcv @ xa), Pa + G @ (Ps[k + 1][0] - Pp) @ G.T)
+        # CV -> CT: complete with CT's omega
+        xu = np.append(xa, xb[4])
+        Pu = np.zeros((5, 5))
+        Pu[:4, :4], Pu[4, 4] = Pa, Pb[4, 4]
+        J = CTN.jacobian(xu, d)
+        Pp = J @ Pu @ J.T + CTN.Q(d)
+        G = Pu @ J.T @ np.linalg.inv(Pp)
+        pairs[0][1] = ((xu + G @ (xs[k + 1][1] - CTN.f(xu, d)))[:4], (Pu + G @ (Ps[k + 1][1] - Pp) @ G.T)[:4, :4])
+        # CT -> CV: CV's F on the kinematic components, omega carried by its covariance
+        Fr = np.hstack([Fcv, np.zeros((4, 1))])
+        Pp = Fr @ Pb @ Fr.T + Qcv
+        G = Pb @ Fr.T @ np.linalg.inv(Pp)
+        pairs[1][0] = (xb + G @ (xs[k + 1][0] - Fr @ xb), Pb + G @ (Ps[k + 1][0] - Pp) @ G.T)
+        # CT -> CT
+        J = CTN.jacobian(xb, d)
+        Pp = J @ Pb @ J.T + CTN.Q(d)
+        G = Pb @ J.T @ np.linalg.inv(Pp)
+        pairs[1][1] = (xb + G @ (xs[k + 1][1] - CTN.f(xb, d)), Pb + G @ (Ps[k + 1][1] - Pp) @ G.T)
+        for i in range(2):
+            w = joint[i] / mu[k, i]
+            xm = w[0] * pairs[i][0][0] + w[1] * pairs[i][1][0]
+            xs[k][i] = xm
+            Ps[k][i] = sum(w[j] * (pairs[i][j][1] + np.outer(pairs[i][j][0] - xm, pairs[i][j][0] - xm))
+                           for j in range(2))
+    return mu, xs
+
+
+def test_cv_and_ct_ekf_bank_matches_kim_equations_written_out():
+    Pi = np.array([[0.93, 0.07], [0.15, 0.85]])
+    est = imm.IMM([imm.KalmanMode(CV, R2), imm.EKFMode(CTN, R2)], Pi, [0.6, 0.4])
+    dts, _, _, zs = _scenario(runs=3)
+    Tn = 40
+    dts, zs = dts[:Tn], zs[20:20 + Tn]  # through the switch at step 30; one missing row (45)
+    x0 = np.append(X0, 0.0)
+    P0_5 = np.diag(np.append(np.diag(P0), 0.05 ** 2))
+    res = imm.imm_filter(est, zs, x0, P0_5, dts)
+    sm = imm.imm_smoother(est, res, dts)
+    # round-off as in the linear written-out test: 10 Tn n r cond eps (cond(F) < 10 squared)
+    cond = max(np.linalg.cond(p).max() for p in res.Ps) * 1e2
+    tol = 10 * Tn * 5 * 2 * cond * EPS
+    for run in range(zs.shape[1]):
+        mu, xs = _kim_reference_mixed(res, dts, Pi, run)
+        assert np.max(np.abs(sm.mu[:, run] - mu)) <= tol
+        for i in range(2):
+            ref = np.array([xs[k][i] for k in range(Tn)])
+            assert np.max(np.abs(sm.xs[i][:, run] - ref)) <= tol * np.abs(ref).max()
+
+
+@pytest.fixture(scope="module")
+def turning_target():
+    """Study 000's scenario II (kftrack.scenarios.drone_scenario, chapter 11): 50 m straight, a
+    90 deg left turn of radius 30 m, 50 m straight, a right turn, 50 m straight, at 2.24 m/s,
+    sampled every 0.447 s (245 steps) with 2 m noise; horizontal plane. Noise redrawn per run."""
+    rng = np.random.default_rng(20261203)
+    sc = scenarios.drone_scenario(rng, "II")
+    truth = sc.truth[:, :4]
+    runs = 60
+    zs = truth[:, None, [0, 2]] + 2.0 * rng.standard_normal((len(sc.t), runs, 2))
+    return truth, zs, float(np.diff(sc.t)[0]), runs
+
+
+@pytest.mark.parametrize("Mode", [imm.EKFMode, imm.UKFMode])
+def test_cv_and_ct_bank_smooths_a_turning_target(turning_target, Mode):
+    """The imm module docstring's bank, CV (4 states) + coordinated turn (5 states, EKF or UKF):
+    the smoother's last step is the filter's, exactly; and its position RMSE per run is lower
+    than the filter's (one-sided paired t over the runs at level 0.001)."""
+    truth, zs, dt, runs = turning_target
+    R = 4.0 * np.eye(2)
+    est = imm.IMM([imm.KalmanMode(CV, R), Mode(CTN, R)], imm.SojournTransition([20.0, 20.0]), [0.5, 0.5])
+    x0 = np.append(truth[0], 0.0)
+    P0_5 = np.diag([4.0, 1.0, 4.0, 1.0, 0.05 ** 2])
+    res = imm.imm_filter(est, zs, x0, P0_5, dt)
+    sm = imm.imm_smoother(est, res, dt)
+    for name in ("x", "P", "mu"):
+        np.testing.assert_array_equal(getattr(sm, name)[-1], getattr(res, name)[-1])
+    assert sm.xs[0].shape == res.xs[0].shape and sm.xs[1].shape == res.xs[1].shape
+    rmse = lambda x: np.sqrt(per_run_error(truth[:, None], x[..., :4], components=[0, 2]))  # noqa: E731
+    d = paired_difference(rmse(sm.x), rmse(res.x))
+    assert d.z < -scipy.stats.t.ppf(1 - 0.001, runs - 1), d
+
+
+def test_ukf_mode_with_a_heading_state_smooths_across_plus_minus_pi():
+    """A UKF mode on the polar turn [x, y, v, chi, omega] with chi an angle (state_angles=[3]): the
+    heading passes +-pi, where the filter wraps it. The backward residual is wrapped too, so the
+    smoothed heading stays in (-pi, pi] and close to the truth (an unwrapped residual would be off
+    by 2 pi there), and the position RMSE per run beats the filter's (paired t, level 0.001)."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(3)
+    Tn, runs, dt, w, v, chi0 = 80, 40, 1.0, 0.1, 10.0, 2.5
+    chi = chi0 + w * dt * np.arange(Tn)  # crosses pi at step 6 and 3 pi at step 69
+    pos = np.stack([v / w * (np.sin(chi) - np.sin(chi0)), -v / w * (np.cos(chi) - np.cos(chi0))], -1)
+    zs = pos[:, None] + 3.0 * rng.standard_normal((Tn, runs, 2))
+    polar = models.CoordinatedTurnPolar()
+    model = SimpleNamespace(n=5, f=polar.f, H=polar.H, Q=lambda d: np.diag([0.1, 0.1, 0.1, 1e-4, 1e-5]) * d)
+    est = imm.IMM([imm.UKFMode(model, 9.0 * np.eye(2), state_angles=[3])], np.eye(1), [1.0])
+    res = imm.imm_filter(est, zs, np.array([0.0, 0.0, v, chi0, w]), np.diag([9.0, 9.0, 1.0, 0.01, 1e-4]), dt)
+    sm = imm.imm_smoother(est, res, dt)
+    assert np.all(np.abs(sm.x[..., 3]) <= np.pi)
+    wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
+    assert np.abs(wrap(sm.x[..., 3] - chi[:, None])).max() < 0.5  # measured below 0.1 rad
+    rmse = lambda x: np.sqrt(np.sum((x[..., :2] - pos[:, None]) ** 2, -1).mean(0))  # noqa: E731
+    d = paired_difference(rmse(sm.x), rmse(res.x))
+    assert d.z < -scipy.stats.t.ppf(1 - 0.001, runs - 1), d

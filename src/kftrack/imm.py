@@ -39,12 +39,14 @@ about them, and the completed covariance stays positive semi-definite). Componen
 lacks are simply dropped (marginalized). Zero padding would instead pull ``omega`` towards 0 and
 shrink its variance. The combined output is reported in the common state; there a mode lacking
 components is completed in the same way from the combination of the *full* modes (those holding
-every component; at least one is required).
+every component; at least one is required). :func:`imm_smoother` smooths every such bank (Kim's
+backward pass with the same completion).
 
 Shapes: ``x`` ``(..., N)``, ``P`` ``(..., N, N)``, ``mu`` ``(..., r)``; time first for sequences.
 """
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable, Sequence
 from typing import NamedTuple, Protocol, runtime_checkable
 
@@ -52,12 +54,12 @@ import numpy as np
 import scipy.linalg
 from array_api_compat import array_namespace
 
-from ._validate import (as_float_array, as_vector, broadcast_batch, check_angles, check_covariance, check_finite,
-                        check_points)
+from ._validate import as_float_array, as_vector, broadcast_batch, check_angles, check_covariance, check_finite
 from .kernels import Update, ekf_predict, ekf_update, kf_predict, kf_update, logsumexp, mixing_log_weights, moment_match
 from .kernels import rts_step, ukf_predict, ukf_update
-from .engines import PerDt, check_dtype, check_dts, run_imm_scan, to_engine, use_jax
-from .ukf import Points
+from .kernels import residual, unscented, wrap_state
+from .engines import PerDt, check_dts, choose_engine, run_imm_scan, to_engine
+from .ukf import Points, check_points
 
 __all__ = [
     "Mode", "KalmanMode", "EKFMode", "UKFMode", "IMMState", "IMMResult", "IMM", "GPB1",
@@ -91,6 +93,10 @@ class Mode(Protocol):
     update(x, P, z)
         Measurement update; returns ``u`` with ``u.x`` ``(..., n)``, ``u.P`` ``(..., n, n)`` and
         ``u.loglik`` ``(...)``, the log-likelihood :math:`\\log N(\\nu; 0, S)` of the innovation.
+    predict_linearized(x, P, dt)
+        Optional, needed by :func:`imm_smoother` only: :meth:`predict`'s ``(x, P)`` and the
+        ``(..., n, n)`` transition matrix the backward pass uses (``F(dt)``, the Jacobian at ``x``,
+        or a statistical linearization).
     """
 
     n: int
@@ -108,18 +114,50 @@ def _measurement(model, R, H):
     return H, R
 
 
+def _takes_dt_alone(fn) -> bool:
+    """Whether ``fn`` can be called as ``fn(dt)`` (a callable whose signature cannot be read is
+    given the benefit of the doubt)."""
+    if not callable(fn):
+        return False
+    try:
+        inspect.signature(fn).bind(1.0)
+    except TypeError:
+        return False
+    except ValueError:  # no signature (a builtin): cannot tell
+        return True
+    return True
+
+
+def _check_linear_model(model) -> None:
+    """Refuse, when a :class:`KalmanMode` is built, a model that is not linear in the IMM's sense:
+    ``F(dt)`` and ``Q(dt)`` of the interval alone (a nonlinear model such as
+    :class:`~kftrack.models.CoordinatedTurn` has ``F(x, dt)``; seed 001's turn has ``Q(x, dt)``)."""
+    name = type(model).__name__
+    for attr in ("F", "Q"):
+        if not _takes_dt_alone(getattr(model, attr, None)):
+            raise TypeError(f"model must be a linear model with {attr}(dt) for a KalmanMode, got {name}, whose "
+                            f"{attr} cannot be called as {attr}(dt) (a nonlinear model); use EKFMode (Jacobians) "
+                            "or UKFMode (sigma points) for it")
+    if getattr(model, "state_dependent_noise", False):
+        raise TypeError(f"model must have a process noise Q(dt) independent of the state for a KalmanMode, got "
+                        f"{name} (state_dependent_noise = True); use EKFMode or UKFMode for it")
+
+
 class KalmanMode:
     """Linear Kalman-filter mode: ``model.F(dt)``, ``model.Q(dt)`` and a linear measurement.
 
     Parameters
     ----------
     model : a linear model of :mod:`kftrack.models` (``ConstantVelocity``, ``KnownTurn``, ...):
-        anything with ``n``, ``F(dt)``, ``Q(dt)`` and, unless ``H`` is given, ``H``.
+        anything with ``n``, ``F(dt)``, ``Q(dt)`` and, unless ``H`` is given, ``H``. A nonlinear
+        model (``F(x, dt)``, as :class:`~kftrack.models.CoordinatedTurn`, or a state-dependent
+        ``Q``) raises ``TypeError``: use :class:`EKFMode` or :class:`UKFMode`.
     R : (m, m) measurement-noise covariance.
     H : (m, n) measurement matrix; default ``model.H`` (the positions).
     """
 
     def __init__(self, model, R, H=None):
+        _check_linear_model(model)
         self.model = model
         self.n = int(model.n)
         self.H, self.R = _measurement(model, R, H)
@@ -129,6 +167,12 @@ class KalmanMode:
         """Kalman time update with ``F(dt)``, ``Q(dt)``."""
         F, Q = self._FQ(dt)
         return kf_predict(x, P, F, Q)
+
+    def predict_linearized(self, x, P, dt):
+        """:meth:`predict` and the transition matrix ``F(dt)`` (what :func:`imm_smoother` needs)."""
+        F, Q = self._FQ(dt)
+        x_pred, P_pred = kf_predict(x, P, F, Q)
+        return x_pred, P_pred, F
 
     def update(self, x, P, z) -> Update:
         """Kalman measurement update (Joseph form); see :func:`kftrack.kalman.update`."""
@@ -203,6 +247,13 @@ class EKFMode(_NonlinearMode):
         return ekf_predict(x, P, lambda s: self.model.f(s, dt), lambda s: self.model.jacobian(s, dt),
                             self._Q(x, dt))
 
+    def predict_linearized(self, x, P, dt):
+        """:meth:`predict` and the Jacobian :math:`F = \\partial f/\\partial x` at ``x`` it used
+        (what :func:`imm_smoother` needs: the extended RTS step)."""
+        F = self.model.jacobian(x, dt)
+        x_pred, P_pred = ekf_predict(x, P, lambda s: self.model.f(s, dt), lambda s: F, self._Q(x, dt))
+        return x_pred, P_pred, F
+
     def update(self, x, P, z) -> Update:
         """EKF measurement update; see :func:`kftrack.ekf.ekf_update`."""
         return ekf_update(x, P, z, self._h, self._H_jac, self.R, self._angles)
@@ -236,6 +287,18 @@ class UKFMode(_NonlinearMode):
     def predict(self, x, P, dt):
         """UKF time update; see :func:`kftrack.ukf.ukf_predict`."""
         return ukf_predict(x, P, lambda s: self.model.f(s, dt), self._Q(x, dt), self.points, self._state_angles)
+
+    def predict_linearized(self, x, P, dt):
+        r""":meth:`predict` and the statistical linearization of ``f`` over the sigma points,
+        :math:`F = C^\top P^{+}` with the cross-covariance :math:`C = \sum_i W^c_i
+        (\mathcal X_i - x)(f(\mathcal X_i) - x^-)^\top` (what :func:`imm_smoother` needs). With it
+        the RTS gain :math:`P F^\top (P^-)^{-1} = C (P^-)^{-1}` is the unscented RTS smoother's
+        (Särkkä 2008): no Jacobian of the model is needed."""
+        x_pred, P_pred = self.predict(x, P, dt)
+        _, _, C, _ = unscented(lambda s: self.model.f(s, dt), x, P, self.points, self._state_angles,
+                               self._state_angles)
+        F = np.swapaxes(np.linalg.pinv(P, hermitian=True) @ C, -1, -2)  # C^T P^+ (P symmetric)
+        return x_pred, P_pred, F
 
     def update(self, x, P, z) -> Update:
         """UKF measurement update; see :func:`kftrack.ukf.ukf_update`."""
@@ -506,13 +569,15 @@ class IMM:
     # ---- building blocks ------------------------------------------------------------------
     def _combine(self, log_mu, xs, Ps):
         mu = np.exp(log_mu)
+        # the full modes in the common order (a full mode may hold the components permuted)
+        common = {k: _complete(xs[k], Ps[k], self._to_common[k], xs[k], Ps[k]) for k in self._full}
         if len(self._full) == 1:
-            k = self._full[0]
-            fx, fP = xs[k], Ps[k]
+            fx, fP = common[self._full[0]]
         else:
             w = mu[..., self._full]
             w = w / w.sum(-1, keepdims=True)
-            fx, fP = moment_match(w, np.stack([xs[k] for k in self._full]), np.stack([Ps[k] for k in self._full]))
+            fx, fP = moment_match(w, np.stack([common[k][0] for k in self._full]),
+                                  np.stack([common[k][1] for k in self._full]))
         full = [_complete(xs[i], Ps[i], self._to_common[i], fx, fP) for i in range(self.r)]
         x, P = moment_match(mu, np.stack([a for a, _ in full]), np.stack([b for _, b in full]))
         return mu, x, P
@@ -700,7 +765,8 @@ def _check_measurement_size(modes, z: np.ndarray, name: str) -> None:
 _dts = check_dts  # intervals (T,) after each step (kftrack.engines.check_dts)
 
 
-def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None, *, progress: bool = False, dtype=None) -> IMMResult:
+def imm_filter(estimator: IMM, zs, x0, P0, dt=None, mu0=None, *, times=None, progress: bool = False,
+               dtype=None) -> IMMResult:
     """Run an :class:`IMM` (or :class:`GPB1`) over a measurement sequence: at each step update
     with ``zs[k]`` (skipped, not faked, when the row is NaN), then predict over ``dt[k]``.
 
@@ -709,8 +775,11 @@ def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None, *, progress: bool = Fal
     estimator : an :class:`IMM` or :class:`GPB1`.
     zs : (T, ..., m) measurements, time first; rows of NaN mark missing measurements.
     x0, P0 : (..., N), (..., N, N) prior of step 0, in the common state.
-    dt : interval (s) after each step, scalar or (T,).
+    dt : interval (s) after each step: a scalar, ``(T,)`` (``dt[k]`` from step ``k`` to ``k + 1``,
+        the last one unused) or ``(T - 1,)`` (``np.diff(t)`` of the timestamps).
     mu0 : optional initial mode probabilities (default: the estimator's).
+    times : None, or instead of ``dt`` the timestamps ``(T,)`` (s, non-decreasing) of the
+        measurements: ``dt = np.diff(times)``. ``dt`` and ``times`` exclude each other.
     progress : show a progress bar (tqdm) over the time steps, for long Monte Carlo runs
         (NumPy engine only).
     dtype : None or ``"float64"`` (default), or ``"float32"`` (explicit, about nine decimal
@@ -724,13 +793,21 @@ def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None, *, progress: bool = Fal
         ``jax.lax.scan``. It takes banks of :class:`KalmanMode` that all hold the whole common
         state (per-mode ``F(dt_k)``, ``Q(dt_k)`` and ``Pi(dt_k)`` are evaluated in NumPy once per
         distinct interval); concrete arrays (values are checked here).
+
+    Raises
+    ------
+    ValueError
+        On the NumPy engine, if the run breaks down (a singular matrix, or a non-finite estimate
+        from finite input): naming ``zs`` when its scale explains it (entries so large that float64
+        resolves them more coarsely than the measurement noise, or that their squares overflow,
+        beyond about 1.3e154), otherwise naming the step. The JAX engine does not check: NaN or inf
+        propagate to the outputs.
     """
-    jax_engine = use_jax(zs, x0, P0, mu0)
-    dtype = check_dtype(dtype, jax_engine)
+    jax_engine, dtype = choose_engine(zs, x0, P0, mu0, dtype=dtype)
     zs, row_missing = _check_zs(zs)
     _check_measurement_size(estimator.modes, zs, "zs")
     T = zs.shape[0]
-    dts = _dts(dt, T)
+    dts = _dts(dt, T, times)
     N, r = estimator.N, estimator.r
     x0 = as_vector(x0, "x0", N)
     P0 = check_covariance(P0, "P0", N)
@@ -752,18 +829,49 @@ def imm_filter(estimator: IMM, zs, x0, P0, dt, mu0=None, *, progress: bool = Fal
         from tqdm.auto import tqdm  # only when asked for
 
         steps = tqdm(steps, desc=type(estimator).__name__, unit="step")
-    for k in steps:
-        out["x_prior"][k], out["P_prior"][k], out["mu_prior"][k] = s.x, s.P, s.mu
-        gone = np.broadcast_to(row_missing[k], batch)
-        if not gone.all():
-            new = estimator._update(s, np.where(gone[..., None], 0.0, zs[k]))
-            s = _keep_where(gone, s, new) if gone.any() else new
-        out["x"][k], out["P"][k], out["mu"][k], out["loglik"][k] = s.x, s.P, s.mu, s.loglik
-        for i in range(r):
-            out_xs[i][k], out_Ps[i][k] = s.xs[i], s.Ps[i]
-        if k < T - 1:
-            s = estimator.predict(s, dts[k])
+    k = 0
+    try:
+        for k in steps:
+            out["x_prior"][k], out["P_prior"][k], out["mu_prior"][k] = s.x, s.P, s.mu
+            gone = np.broadcast_to(row_missing[k], batch)
+            if not gone.all():
+                new = estimator._update(s, np.where(gone[..., None], 0.0, zs[k]))
+                s = _keep_where(gone, s, new) if gone.any() else new
+            out["x"][k], out["P"][k], out["mu"][k], out["loglik"][k] = s.x, s.P, s.mu, s.loglik
+            for i in range(r):
+                out_xs[i][k], out_Ps[i][k] = s.xs[i], s.Ps[i]
+            if k < T - 1:
+                s = estimator.predict(s, dts[k])
+    except np.linalg.LinAlgError:
+        _check_scale(estimator, zs, row_missing, k, "a singular matrix")
+        raise
+    bad = ~np.isfinite(out["x"]).all(-1) | ~np.isfinite(out["P"]).all((-2, -1)) | np.isnan(out["mu"]).any(-1)
+    if bad.any():  # finite input must give finite estimates (mu may hold 0, never NaN)
+        k = int(np.argwhere(bad)[0][0])
+        _check_scale(estimator, zs, row_missing, k, "a non-finite estimate")
+        raise ValueError(f"imm_filter produced a non-finite estimate at step {k} from finite zs, x0, P0: a mode's "
+                         "model or measurement function (f, h, a Jacobian, Q) returned NaN or inf there, or x0, "
+                         "P0, R are too large to square in floating point")
     return IMMResult(**out, xs=out_xs, Ps=out_Ps)
+
+
+def _check_scale(estimator: IMM, zs, row_missing, k: int, what: str) -> None:
+    """Where the NumPy engine broke down at step ``k`` (``what``), raise a ``ValueError`` naming
+    ``zs`` if its scale explains it: numbers of size :math:`|z|` are resolved only to
+    :math:`|z|\\,\\varepsilon`; once that is coarser than the measurement noise (the smallest std of
+    the modes' ``R``) the covariances lose rank in round-off, and beyond :math:`\\sqrt{\\max}`
+    (1.3e154 in float64) the squared innovations overflow."""
+    seen = zs[~row_missing]
+    scale = float(np.abs(seen).max()) if seen.size else 0.0
+    info = np.finfo(zs.dtype)
+    stds = [np.sqrt(np.linalg.eigvalsh(m.R).min()) for m in estimator.modes if getattr(m, "R", None) is not None]
+    noise = float(min(stds)) if stds else 0.0
+    if scale * float(info.eps) > noise or scale > 1e-3 * np.sqrt(float(info.max)):
+        raise ValueError(f"zs has entries up to {scale:.3g} in magnitude, too large for {zs.dtype} arithmetic: "
+                         f"numbers of that size are resolved only to {scale * float(info.eps):.2g}, coarser than the "
+                         f"measurement noise (std {noise:.3g} from R), and squares overflow above "
+                         f"{np.sqrt(float(info.max)):.2g}; the filter met {what} at step {k}. Rescale the units or "
+                         "subtract a reference point from zs and x0")
 
 
 def _imm_filter_jax(estimator: IMM, zs, row_missing, x0, P0, mu0, dts, batch, dtype) -> IMMResult:
@@ -853,9 +961,10 @@ def clairvoyant_filter(modes: Sequence, mode_sequence, zs, x0, P0, dt) -> tuple[
 # --------------------------------------------------------------------------------------------
 class IMMSmootherResult(NamedTuple):
     """A fixed-interval smoothed sequence (:func:`imm_smoother`), time first: combined means
-    ``x`` (T, ..., n) and covariances ``P`` (T, ..., n, n), smoothed mode probabilities ``mu``
-    (T, ..., r) :math:`P\\{M_k = j \\mid Z^T\\}`, and the mode-conditioned smoothed means ``xs`` and
-    covariances ``Ps`` (tuples of r arrays (T, ..., n), (T, ..., n, n))."""
+    ``x`` (T, ..., N) and covariances ``P`` (T, ..., N, N) in the common state, smoothed mode
+    probabilities ``mu`` (T, ..., r) :math:`P\\{M_k = j \\mid Z^T\\}`, and the mode-conditioned
+    smoothed means ``xs`` and covariances ``Ps`` (tuples of r arrays (T, ..., n_i),
+    (T, ..., n_i, n_i), each on its mode's components)."""
 
     x: np.ndarray
     P: np.ndarray
@@ -870,16 +979,13 @@ def _check_smoother_input(estimator, result) -> tuple[int, tuple]:
         raise TypeError("estimator must be an IMM (not GPB1: its mode posteriors all start from the combined "
                         f"estimate, which the smoother's pairwise predictions do not model), got {type(estimator).__name__}")
     for i, m in enumerate(estimator.modes):
-        if not isinstance(m, KalmanMode):
-            raise TypeError(f"estimator.modes[{i}] must be a KalmanMode (the smoother needs the linear F(dt), "
-                            f"Q(dt)), got {type(m).__name__}")
-    if len(set(estimator.components)) != 1:
-        raise ValueError("estimator must have modes that all hold the same state components (imm_smoother does "
-                         "not smooth across modes of different dimension), got components "
-                         f"{[list(c) for c in estimator.components]}")
+        if not callable(getattr(m, "predict_linearized", None)):
+            raise TypeError(f"estimator.modes[{i}] must be a KalmanMode, EKFMode or UKFMode, or have "
+                            "predict_linearized(x, P, dt) (the backward pass needs the mode's transition matrix "
+                            f"at the filtered state), got {type(m).__name__} without it")
     if not isinstance(result, IMMResult):
         raise TypeError(f"result must be an IMMResult from imm_filter, got {type(result).__name__}")
-    r, n = estimator.r, estimator.N
+    r = estimator.r
     if result.xs is None or result.Ps is None or len(result.xs) != r or len(result.Ps) != r:
         raise ValueError(f"result must carry the per-mode posteriors xs, Ps of {r} modes (an IMMResult from "
                          "imm_filter with this estimator), got "
@@ -889,14 +995,73 @@ def _check_smoother_input(estimator, result) -> tuple[int, tuple]:
     if mu.ndim < 2 or mu.shape[-1] != r:
         raise ValueError(f"result.mu must have shape (T, ..., {r}), got shape {mu.shape}")
     T, batch = mu.shape[0], mu.shape[1:-1]
-    for i in range(r):
+    bad = ~np.isfinite(mu) | (mu < 0)
+    if bad.any():
+        k = int(np.argwhere(bad)[0][0])
+        raise ValueError(f"result.mu must hold finite mode probabilities >= 0, got NaN, inf or a negative value "
+                         f"at step {k} (shape {mu.shape}); the smoother needs the filter's own result")
+    tol = max(_TOL, 8 * r * np.finfo(mu.dtype if mu.dtype.kind == "f" else float).eps)  # float32 results too
+    off = np.abs(mu.sum(-1) - 1.0)
+    if np.any(off > tol):
+        raise ValueError(f"result.mu must sum to 1 over its last axis (mode probabilities), got a sum off by "
+                         f"{off.max():.3g} (shape {mu.shape})")
+    for i, c in enumerate(estimator.components):
+        n = len(c)
         if np.shape(result.xs[i]) != (T,) + batch + (n,) or np.shape(result.Ps[i]) != (T,) + batch + (n, n):
             raise ValueError(f"result.xs[{i}], result.Ps[{i}] must have shapes {(T,) + batch + (n,)} and "
                              f"{(T,) + batch + (n, n)}, got {np.shape(result.xs[i])} and {np.shape(result.Ps[i])}")
+    N = estimator.N
+    for name, shape in (("x", (N,)), ("P", (N, N))):
+        if np.shape(getattr(result, name)) != (T,) + batch + shape:
+            raise ValueError(f"result.{name} must have shape {(T,) + batch + shape}, got "
+                             f"{np.shape(getattr(result, name))}")
     return T, batch
 
 
-def imm_smoother(estimator: IMM, result: IMMResult, dt) -> IMMSmootherResult:
+def _pair_space(ci: tuple, cj: tuple):
+    """The state space of the smoother's pair (mode ``i`` at ``k``, mode ``j`` at ``k + 1``): mode
+    ``j``'s components ``cj`` followed by those of ``ci`` that ``j`` lacks. Returns the embedding of
+    ``ci`` into it, the positions of ``ci`` in it and the number of those extra components."""
+    space = tuple(cj) + tuple(c for c in ci if c not in cj)
+    pos = {c: a for a, c in enumerate(space)}
+    return _embedding(ci, space), np.array([pos[c] for c in ci], dtype=int), len(space) - len(cj)
+
+
+def _pair_rts(mode, x_i, P_i, x_j, P_j, xs_next, Ps_next, dt, space):
+    r"""One RTS step of the pair (i at k, j at k + 1) in the pair space of :func:`_pair_space`.
+
+    Mode ``i``'s posterior ``(x_i, P_i)`` is completed with mode ``j``'s own ``(x_j, P_j)`` at ``k``
+    where it lacks ``j``'s components (the filter's unbiased mixing into ``j``); ``j``'s transition
+    acts on its components, :math:`F^{ij} = [F_j \; 0]` (the extra components of ``i`` do not enter
+    ``j``'s dynamics, they are smoothed through their covariance with the rest); the result is
+    returned on ``i``'s components. Angles of a :class:`UKFMode` state: the residual wrapped."""
+    emb, back, extra = space
+    plain = emb[3] and not extra  # i holds exactly j's components: the plain RTS step
+    if plain:
+        x_u, P_u = x_i, P_i
+        x_a, P_a = x_i, P_i
+    else:
+        nj = x_j.shape[-1]
+        fill_x = np.concatenate([x_j, np.zeros(x_j.shape[:-1] + (extra,))], axis=-1)
+        fill_P = np.zeros(P_j.shape[:-2] + (nj + extra, nj + extra))
+        fill_P[..., :nj, :nj] = P_j
+        x_u, P_u = _complete(x_i, P_i, emb, fill_x, fill_P)
+        x_a, P_a = x_u[..., :nj], P_u[..., :nj, :nj]
+    x_pred, P_pred, F = mode.predict_linearized(x_a, P_a, dt)
+    if extra:
+        F = np.concatenate([F, np.zeros(F.shape[:-1] + (extra,))], axis=-1)
+    angles = getattr(mode, "_state_angles", ())
+    if angles:
+        xs_next = x_pred + residual(xs_next, x_pred, angles)
+    x_s, P_s, _ = rts_step(x_u, P_u, x_pred, P_pred, xs_next, Ps_next, F)
+    if angles:
+        x_s = wrap_state(x_s, angles)
+    if plain:
+        return x_s, P_s
+    return x_s[..., back], P_s[..., back[:, None], back]
+
+
+def imm_smoother(estimator: IMM, result: IMMResult, dt=None, *, times=None) -> IMMSmootherResult:
     r"""Fixed-interval smoother for a Markov-switching linear model over the output of
     :func:`imm_filter`: Kim's backward recursion (Kim 1994; Kim & Nelson 1999, §5.2), run on the
     IMM's mode-matched posteriors :math:`x^i_{k|k}, P^i_{k|k}` and probabilities
@@ -929,7 +1094,23 @@ def imm_smoother(estimator: IMM, result: IMMResult, dt) -> IMMSmootherResult:
     exactly the RTS smoother (:func:`kftrack.kalman.rts_smoother`). This is not the two-filter
     smoother of Helmick, Blair & Hoffman (1995). Probabilities are handled in log space (a mode
     with zero probability keeps weight zero, no division by zero). Cost: :math:`r^2` RTS steps
-    per time step, batched over runs.
+    per time step, batched over runs. At ``T - 1`` the output is the filter's, to the last bit.
+
+    **Every mode imm_filter accepts.** :math:`F_j` is the matrix of the mode's
+    ``predict_linearized``: ``F(dt)`` for a :class:`KalmanMode`; for an :class:`EKFMode` the
+    Jacobian of ``f`` at the pair's starting state :math:`x^i_{k|k}` (the extended RTS step, with
+    the EKF's own prediction :math:`f_j(x^i_{k|k})`); for a :class:`UKFMode` the statistical
+    linearization over the sigma points, :math:`F_j = C^\top (P^i_{k|k})^{+}`, so that
+    :math:`G^{ij} = C (P^{ij}_{k+1|k})^{-1}` is the unscented RTS gain (Särkkä 2008) with the UKF's
+    own predicted mean and covariance (no Jacobian needed; state angles: residual wrapped).
+    **Modes of different dimension**: the pair step runs on mode ``j``'s components plus those of
+    ``i`` that ``j`` lacks; ``i``'s posterior is completed where it lacks ``j``'s components with
+    mode ``j``'s own filtered estimate at ``k`` (zero cross-covariance), the unbiased completion of
+    the filter's mixing into ``j``; ``j``'s dynamics act on its own components
+    (:math:`[F_j\;0]`), and ``i``'s extra components (``omega`` for a turn mode going into CV) are
+    smoothed through their covariance with the others. The combined output completes modes of
+    lower dimension as the filter's output does. Singular predicted covariances (e.g. after
+    ``P0 = 0`` with a rank-deficient ``Q``) are handled by :func:`kftrack.kernels.rts_step`.
 
     **Limitation.** The collapse to one Gaussian per mode at every step makes the backward pass
     apply, in effect, the probability-weighted mix of the modes' inverse dynamics. With modes that
@@ -942,33 +1123,38 @@ def imm_smoother(estimator: IMM, result: IMMResult, dt) -> IMMSmootherResult:
 
     Parameters
     ----------
-    estimator : the :class:`IMM` (not :class:`GPB1`) that produced ``result``; its modes must be
-        :class:`KalmanMode` holding the same state components (modes of different dimension
-        raise ``ValueError``: there is no common ``F`` to smooth through).
+    estimator : the :class:`IMM` (not :class:`GPB1`) that produced ``result``; its modes are
+        :class:`KalmanMode`, :class:`EKFMode`, :class:`UKFMode` (any mix, any dimensions), or
+        modes with ``predict_linearized`` (:class:`Mode`); other modes raise ``TypeError``.
     result : the :class:`IMMResult` of :func:`imm_filter` with this estimator (it carries the
-        per-mode posteriors ``xs``, ``Ps``).
-    dt : interval (s) after each step, scalar or (T,): the same as given to :func:`imm_filter`.
+        per-mode posteriors ``xs``, ``Ps``); ``result.mu`` must be finite probabilities.
+    dt : interval (s) after each step, scalar, (T,) or (T - 1,): the same as given to
+        :func:`imm_filter`.
+    times : None, or instead of ``dt`` the timestamps ``(T,)`` (s), as in :func:`imm_filter`.
 
     Returns
     -------
     IMMSmootherResult
-        ``x`` (T, ..., n), ``P`` (T, ..., n, n), ``mu`` (T, ..., r), ``xs``, ``Ps``.
+        ``x`` (T, ..., N), ``P`` (T, ..., N, N), ``mu`` (T, ..., r), ``xs``, ``Ps`` (per mode,
+        on its components).
 
     References
     ----------
     C.-J. Kim, "Dynamic linear models with Markov-switching", *Journal of Econometrics* 60
     (1994) 1–22. C.-J. Kim and C. R. Nelson, *State-Space Models with Regime Switching*, MIT
-    Press 1999, §5.2.
+    Press 1999, §5.2. S. Särkkä, "Unscented Rauch–Tung–Striebel smoother", *IEEE Transactions
+    on Automatic Control* 53 (2008) 845–849.
     """
     T, batch = _check_smoother_input(estimator, result)
-    dts = _dts(dt, T)
-    r, n = estimator.r, estimator.N
+    dts = _dts(dt, T, times)
+    r, N, comps = estimator.r, estimator.N, estimator.components
+    common = all(c == tuple(range(N)) for c in comps)  # every mode holds the common state, in order
     with np.errstate(divide="ignore"):
         log_mu_f = np.log(np.asarray(result.mu, dtype=float))
     out_mu = np.empty((T,) + batch + (r,))
-    out_xs = tuple(np.empty((T,) + batch + (n,)) for _ in range(r))
-    out_Ps = tuple(np.empty((T,) + batch + (n, n)) for _ in range(r))
-    out_x, out_P = np.empty((T,) + batch + (n,)), np.empty((T,) + batch + (n, n))
+    out_xs = tuple(np.empty((T,) + batch + (len(c),)) for c in comps)
+    out_Ps = tuple(np.empty((T,) + batch + (len(c), len(c))) for c in comps)
+    out_x, out_P = np.empty((T,) + batch + (N,)), np.empty((T,) + batch + (N, N))
     self_weight = np.where(np.eye(r, dtype=bool), 0.0, -np.inf)  # (i, j): all weight on j = i
     log_ms = log_mu_f[T - 1] - logsumexp(log_mu_f[T - 1], axis=-1, keepdims=True)
     # the filter's per-mode posteriors as NumPy arrays (a JAX engine result is converted once)
@@ -976,33 +1162,35 @@ def imm_smoother(estimator: IMM, result: IMMResult, dt) -> IMMSmootherResult:
     f_Ps = [np.asarray(b, dtype=float) for b in result.Ps]
     xs_s = [f_xs[j][T - 1] for j in range(r)]
     Ps_s = [f_Ps[j][T - 1] for j in range(r)]
-    for k in range(T - 1, -1, -1):
-        if k < T - 1:
-            logw, _ = mixing_log_weights(log_mu_f[k], estimator.transition(dts[k]))  # log mu^{i|j}_k
-            log_joint = logw + log_ms[..., None, :]  # log mu^{ij}_{k|T}
-            log_mi = logsumexp(log_joint, axis=-1, keepdims=True)  # (..., i, 1)
-            with np.errstate(invalid="ignore"):
-                log_cond = log_joint - log_mi  # log P(M_{k+1} = j | M_k = i, Z^T)
-            log_cond = np.where(np.isneginf(log_mi), self_weight, log_cond)  # a mode of probability 0
-            cond = np.exp(log_cond)
-            FQ = [m._FQ(dts[k]) for m in estimator.modes]
-            new_xs, new_Ps = [], []
-            for i in range(r):
-                xi, Pi_ = f_xs[i][k], f_Ps[i][k]
-                pair_x, pair_P = [], []
-                for j, (F, Q) in enumerate(FQ):
-                    xp, Pp = kf_predict(xi, Pi_, F, Q)  # the pair's prediction F_j x^i, P^{ij}_{k+1|k}
-                    a, b, _ = rts_step(xi, Pi_, xp, Pp, xs_s[j], Ps_s[j], F)
-                    pair_x.append(a)
-                    pair_P.append(b)
-                a, b = moment_match(cond[..., i, :], np.stack(pair_x), np.stack(pair_P))
-                new_xs.append(a)
-                new_Ps.append(b)
-            xs_s, Ps_s = new_xs, new_Ps
-            log_ms = log_mi[..., 0] - logsumexp(log_mi[..., 0], axis=-1, keepdims=True)
+    spaces = [[_pair_space(comps[i], comps[j]) for j in range(r)] for i in range(r)]
+    for k in range(T - 2, -1, -1):
+        logw, _ = mixing_log_weights(log_mu_f[k], estimator.transition(dts[k]))  # log mu^{i|j}_k
+        log_joint = logw + log_ms[..., None, :]  # log mu^{ij}_{k|T}
+        log_mi = logsumexp(log_joint, axis=-1, keepdims=True)  # (..., i, 1)
+        with np.errstate(invalid="ignore"):
+            log_cond = log_joint - log_mi  # log P(M_{k+1} = j | M_k = i, Z^T)
+        log_cond = np.where(np.isneginf(log_mi), self_weight, log_cond)  # a mode of probability 0
+        cond = np.exp(log_cond)
+        new_xs, new_Ps = [], []
+        for i in range(r):
+            pairs = [_pair_rts(mode, f_xs[i][k], f_Ps[i][k], f_xs[j][k], f_Ps[j][k], xs_s[j], Ps_s[j], dts[k],
+                               spaces[i][j]) for j, mode in enumerate(estimator.modes)]
+            a, b = moment_match(cond[..., i, :], np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs]))
+            new_xs.append(a)
+            new_Ps.append(b)
+        xs_s, Ps_s = new_xs, new_Ps
+        log_ms = log_mi[..., 0] - logsumexp(log_mi[..., 0], axis=-1, keepdims=True)
         mu_s = np.exp(log_ms)
         out_mu[k] = mu_s
         for i in range(r):
             out_xs[i][k], out_Ps[i][k] = xs_s[i], Ps_s[i]
-        out_x[k], out_P[k] = moment_match(mu_s, np.stack(xs_s), np.stack(Ps_s))
+        if common:
+            out_x[k], out_P[k] = moment_match(mu_s, np.stack(xs_s), np.stack(Ps_s))
+        else:  # modes lacking components completed from the full ones, as in the filter's output
+            _, out_x[k], out_P[k] = estimator._combine(log_ms, xs_s, Ps_s)
+    # at T - 1 the smoother is the filter: its own numbers, to the last bit
+    out_mu[T - 1], out_x[T - 1], out_P[T - 1] = (np.asarray(a[T - 1], dtype=float)
+                                                  for a in (result.mu, result.x, result.P))
+    for i in range(r):
+        out_xs[i][T - 1], out_Ps[i][T - 1] = f_xs[i][T - 1], f_Ps[i][T - 1]
     return IMMSmootherResult(out_x, out_P, out_mu, out_xs, out_Ps)
