@@ -329,10 +329,12 @@ def test_gospa_matches_stonesoup(seed):
     ss = res.value
     ours = asc.gospa(X, Y, c=c, p=p)
     # both solve the same assignment; the sums differ only in order: ~ (N + M) eps relative.
-    # (Stone Soup's breakdown can be wrong at the cut-off on some machines: tests/test_peers.py;
-    # these seeds hold no such pair.)
     assert ours.distance == pytest.approx(ss["distance"], rel=1e-12, abs=1e-12)
-    assert ours.localisation == pytest.approx(ss["localisation"], rel=1e-12, abs=1e-12)
+    # Stone Soup's breakdown decides "at the cut-off" by an exact float comparison that can go
+    # either way on another machine (tests/test_peers.py): compare it only where no pair reaches c.
+    d = np.linalg.norm(X[:, None] - Y[None], axis=-1) if N and M else np.zeros(0)
+    if not np.any(d >= c):
+        assert ours.localisation == pytest.approx(ss["localisation"], rel=1e-12, abs=1e-12)
 
 
 def test_ospa_closed_cases():
