@@ -7,18 +7,37 @@ inner loops of the filters call the unchecked kernels.
 from __future__ import annotations
 
 import operator
+import sys
 
 import numpy as np
 
 __all__ = ["as_float_array", "as_vector", "as_matrix", "check_covariance", "check_finite", "check_rng",
            "finite_scalar", "positive_scalar", "broadcast_batch", "check_state", "check_sequence", "check_form",
-           "check_angles", "call_checked", "as_measurement_sequence"]
+           "check_angles", "call_checked", "as_measurement_sequence", "check_missing", "is_tracer", "stand_in"]
 
 _EPS = float(np.finfo(float).eps)
 _TINY = float(np.finfo(float).tiny)
 # Largest n for which a successful Cholesky factorization decides the semi-definiteness test of
 # check_covariance exactly as the eigenvalue test would (see there); larger matrices go to eigvalsh.
 _CHOLESKY_MAX_N = 32
+
+
+def is_tracer(a) -> bool:
+    """True for an abstract JAX value (inside ``jit``, ``grad``, ``vmap``): shapes only, no values."""
+    jax = sys.modules.get("jax")  # nobody imported jax: nothing can be a tracer
+    return jax is not None and isinstance(a, jax.core.Tracer)
+
+
+def stand_in(value, kind: str):
+    """A NumPy stand-in of the same shape for an abstract JAX value (inside ``jit``/``grad``/``vmap``),
+    so the boundary checks still check its shape (values cannot be checked there); the value
+    itself otherwise. ``kind``: ``"cov"`` (identity matrices), ``"matrix"``/``"vector"`` (zeros)."""
+    if not is_tracer(value):
+        return value
+    shape = tuple(value.shape)
+    if kind == "cov" and len(shape) >= 2 and shape[-1] == shape[-2]:
+        return np.broadcast_to(np.eye(shape[-1]), shape)
+    return np.zeros(shape)
 
 
 def as_float_array(value, name: str) -> np.ndarray:
@@ -192,20 +211,77 @@ def check_state(x, P, names: tuple[str, str] = ("x", "P")):
     return x, P, n
 
 
-def check_sequence(zs, x0, P0, Q, R):
+def check_sequence(zs, x0, P0, Q, R, missing=None):
     """Boundary checks shared by the whole-sequence filters (KF, EKF, UKF).
 
-    Returns ``zs, x0, P0, Q, R, n, m, batch, row_missing`` where ``row_missing`` ``(T, ...)``
-    marks the all-NaN measurement rows.
+    Abstract JAX values (inside ``jit``, ``grad``, ``vmap``) are checked for their shapes through
+    :func:`stand_in`. Returns ``zs, x0, P0, Q, R, n, m, batch, row_missing``, the arrays checked
+    (stand-ins for abstract values), where ``row_missing`` ``(T, ...)`` marks the measurement rows
+    not to use (:func:`check_missing`), or is None when only the trace knows them.
     """
-    x0, P0, n = check_state(x0, P0, ("x0", "P0"))
-    zs, row_missing = as_measurement_sequence(zs, "zs")
+    x0, P0, n = check_state(stand_in(x0, "vector"), stand_in(P0, "cov"), ("x0", "P0"))
+    zs, row_missing = check_missing(zs, missing)
     m = zs.shape[-1]
-    Q = check_covariance(Q, "Q", n, origin=f"n = {n} from x0")
-    R = check_covariance(R, "R", m, positive_definite=True, origin=f"m = {m} from zs")
+    Q = check_covariance(stand_in(Q, "cov"), "Q", n, origin=f"n = {n} from x0")
+    R = check_covariance(stand_in(R, "cov"), "R", m, positive_definite=True, origin=f"m = {m} from zs")
     batch = broadcast_batch({"zs[k]": zs.shape[1:-1], "x0": x0.shape[:-1], "P0": P0.shape[:-2],
                              "Q": Q.shape[:-2], "R": R.shape[:-2]})
     return zs, x0, P0, Q, R, n, m, batch, row_missing
+
+
+def check_missing(zs, missing=None, name: str = "zs"):
+    """The measurement sequence ``zs`` ``(T, ..., m)`` and its missing rows, from one of
+
+    * ``missing=None``: the rows of NaN of ``zs`` (:func:`as_measurement_sequence`); for an
+      abstract ``zs`` (inside a JAX trace) they are not known here: the pattern is None and the
+      filter derives it inside the trace, run by run;
+    * ``missing=False``: no row is missing (``zs`` must then be finite);
+    * ``missing`` a concrete boolean array ``(T,)`` or ``(T, ...)`` whose batch axes broadcast to
+      those of ``zs``: True marks a row not to use, whatever it holds; the other rows must be
+      finite.
+
+    A concrete pattern is static information: it is known when the filter is traced, so it may
+    keep the covariances shared by all runs inside ``jax.jit``. Returns ``(zs, pattern)``, ``zs``
+    checked (a :func:`stand_in` for an abstract value) and the pattern a NumPy bool array or None.
+    """
+    abstract = is_tracer(zs)
+    if missing is None:
+        if not abstract:
+            return as_measurement_sequence(zs, name)
+        arr = as_vector(stand_in(zs, "vector"), name)
+        if arr.ndim < 2:
+            raise ValueError(f"{name} must have shape (T, ..., m) with time first, got shape {arr.shape}")
+        return arr, None
+    if is_tracer(missing):
+        raise TypeError("missing must be concrete (a NumPy boolean array, or False): it decides how the filter is "
+                        "compiled; inside jax.jit pass it from outside the traced function, got a traced value "
+                        f"of shape {tuple(missing.shape)}")
+    arr = as_vector(stand_in(zs, "vector"), name, allow_nan=True)
+    if arr.ndim < 2:
+        raise ValueError(f"{name} must have shape (T, ..., m) with time first, got shape {arr.shape}")
+    T, zb = arr.shape[0], arr.shape[1:-1]
+    if missing is False or (isinstance(missing, np.bool_) and not missing):
+        gone = np.zeros(T, dtype=bool)
+    else:
+        gone = np.asarray(missing)
+        if gone.dtype != bool or gone.ndim == 0:
+            raise TypeError(f"missing must be None, False or a boolean array of shape ({T},) or ({T}, ...) (True: "
+                            f"the row of {name} is not used), got {type(missing).__name__}"
+                            + (f" of dtype {gone.dtype} and shape {gone.shape}" if hasattr(missing, "shape") else ""))
+        if gone.shape[0] != T or len(gone.shape) - 1 > len(zb) or not all(
+                a in (1, b) for a, b in zip(gone.shape[:0:-1], zb[::-1])):
+            raise ValueError(f"missing must have shape ({T},) or ({T}, ...) with batch axes that broadcast to those "
+                             f"of {name} {zb} (one flag per step and run), got shape {gone.shape}")
+    if not abstract:
+        used = ~np.broadcast_to(gone.reshape((T,) + (1,) * (len(zb) + 1 - gone.ndim) + gone.shape[1:]), arr.shape[:-1])
+        bad = used[..., None] & ~np.isfinite(arr)
+        if bad.any():
+            k = int(np.argwhere(bad)[0][0])
+            what = "NaN" if np.isnan(arr[bad]).any() else "inf"
+            raise ValueError(f"{name} has {what} at step {k} in a row that missing does not mark as missing: a "
+                             "measurement used must be finite (mark the row True in missing, or pass missing=None "
+                             "to take rows of NaN as missing)")
+    return arr, gone
 
 
 _FORMS = ("joseph", "standard")
@@ -236,7 +312,9 @@ def check_angles(angle_components, m: int, name: str = "angle_components") -> tu
 def call_checked(fn, x, name: str, shape: tuple) -> np.ndarray:
     """Call a user function once at the boundary and check the shape of what it returns."""
     try:
-        out = np.asarray(fn(x), dtype=float)
+        out = fn(x)
+        # an abstract JAX value (fn closes over a traced parameter): its shape is checked, not its values
+        out = stand_in(out, "matrix") if is_tracer(out) else np.asarray(out, dtype=float)
     except Exception as exc:  # report which argument failed, keep the cause
         raise ValueError(f"{name} failed on x of shape {x.shape}: {exc}") from exc
     if shape and (out.ndim < len(shape) or out.shape[-len(shape):] != shape):

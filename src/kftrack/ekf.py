@@ -35,12 +35,12 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ._validate import (as_float_array, as_matrix, as_vector, broadcast_batch, call_checked, check_angles,
-                        check_covariance, check_rng, check_sequence, check_state)
+                        check_covariance, check_rng, check_sequence, check_state, is_tracer, stand_in)
 from .kernels import Update
 from .results import FilterResult
 from .kernels import ekf_predict as _k_predict
 from .kernels import ekf_update as _k_update
-from .engines import Kernel, run_filter
+from .engines import Given, Kernel, _jax, run_filter
 from .kernels import matrix_transpose, mv, sym, wrap_angle
 from .kernels import residual as _k_residual
 
@@ -155,7 +155,8 @@ def ekf_update(x, P, z, h: Vector | np.ndarray, H_jac: Vector | None, R, angle_c
 
 def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | np.ndarray, H_jac: Vector | None, R,
                            angle_components: Sequence[int] = (), *, state_angles: Sequence[int] = (),
-                           R_per_step: bool = False, progress: bool = False, dtype=None) -> FilterResult:
+                           R_per_step: bool = False, progress: bool = False, dtype=None,
+                           missing=None) -> FilterResult:
     r"""Filter a whole measurement sequence with the EKF: update with ``zs[k]``, then predict.
 
     Same conventions as :func:`kftrack.kalman.kalman_filter` (``x0`` is the prior of step 0,
@@ -177,15 +178,23 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | 
         to :math:`(-\pi, \pi]`).
     R_per_step : if True, ``R`` is time first, ``(T, ..., m, m)``: one covariance per step (and
         per run), as converted measurements need (:meth:`kftrack.sensors.radar.Radar.to_cartesian`).
+        At the missing rows it is not used and may be NaN; under ``jax.grad`` keep it finite
+        there if it depends on a differentiated parameter (``0 * NaN`` is NaN in the gradient).
     progress : show a tqdm progress bar over the time steps (its timings are not reproducible
         output, so the book's executed notebooks leave it off; NumPy engine only).
     dtype : None or ``"float64"`` (default), or ``"float32"`` (explicit, about nine decimal
         digits lost); see :func:`kftrack.kalman.kalman_filter`.
+    missing : None (rows of NaN of ``zs`` are missing), False (none is) or a boolean mask
+        ``(T,)`` or ``(T, ...)`` of the rows not to use, as in :func:`kftrack.kalman.kalman_filter`.
 
     With JAX arrays among ``zs``, ``x0``, ``P0``, ``Q``, ``R`` the JAX engine runs (JAX arrays
     out); then ``f``, ``F_jac``, ``h``, ``H_jac`` (and a callable ``Q``) must be written with
-    ``jax.numpy``, and the same function objects reuse the compiled loop. Concrete arrays only
-    (their values are checked here).
+    ``jax.numpy`` (or the array API), and the same function objects reuse the compiled loop.
+    The filter composes: inside ``jax.jit``, ``jax.grad`` (of ``jnp.nansum(result.loglik)``, say,
+    with respect to the noise) and ``jax.vmap`` (over data or parameters) the shapes of the
+    abstract inputs are checked, their values cannot be (and with ``missing=None`` the missing
+    rows are found inside the trace). The functions are called once at the boundary on a
+    NumPy state (``x0`` or a stand-in of its shape) to check the shapes they return.
 
     **NaN from your functions.** On the NumPy engine the output of ``f``, ``F_jac``, ``h``,
     ``H_jac`` (and a callable ``Q``) is checked right after each call: NaN or inf raises a
@@ -199,18 +208,18 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | 
     """
     sources = (zs, x0, P0, Q, R)  # the caller's arrays choose the engine
     Q_fn = Q if callable(Q) else None
-    x0c, _, n0 = check_state(x0, P0, ("x0", "P0"))
-    if Q_fn is not None:
-        Q = call_checked(Q_fn, x0c, "Q", (n0, n0))
-    R_seq = None
+    x0c, _, n0 = check_state(stand_in(x0, "vector"), stand_in(P0, "cov"), ("x0", "P0"))
+    Q_h = Q if Q_fn is None else call_checked(Q_fn, x0c, "Q", (n0, n0))
+    R_seq, R_h = None, R
     if R_per_step:
-        R_seq, R = _per_step(R, zs)
-    zs, x0, P0, Q, R, n, m, batch, row_missing = check_sequence(zs, x0, P0, Q, R)
+        R_seq, R_h = _per_step(stand_in(R, "cov"), zs, missing)
+    zs_h, x0_h, P0_h, Q_h, R_h, n, m, batch, gone = check_sequence(zs, x0, P0, Q_h, R_h, missing)
     angles = check_angles(angle_components, m)
     x_angles = check_angles(state_angles, n, "state_angles")
-    xb = np.broadcast_to(x0, batch + (n,))
-    H_lin = None if callable(h) else measurement_functions(h, H_jac, n, m)[1](None)  # the (m, n) matrix
-    h_, H_jac_ = measurement_functions(h, H_jac, n, m)
+    xb = np.broadcast_to(x0_h, batch + (n,))
+    h_h = h if callable(h) else stand_in(h, "matrix")
+    H_lin = None if callable(h) else measurement_functions(h_h, H_jac, n, m)[1](None)  # the (m, n) matrix
+    h_, H_jac_ = measurement_functions(h_h, H_jac, n, m)
     call_checked(f, xb, "f", (n,))
     call_checked(F_jac, xb, "F_jac", (n, n))
     call_checked(h_, xb, "h", (m,))
@@ -221,28 +230,44 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | 
         predict, pred_args = Kernel(_predict_state_q, (("f", f), ("F_jac", F_jac), ("Q_fn", Q_fn),
                                                        ("x_angles", x_angles)), user), ()
     else:
-        predict, pred_args = Kernel(_predict, (("f", f), ("F_jac", F_jac), ("x_angles", x_angles)), user), (Q,)
+        predict, pred_args = Kernel(_predict, (("f", f), ("F_jac", F_jac), ("x_angles", x_angles)), user), \
+            (Given(Q, Q_h),)
     meas = (("angles", angles), ("x_angles", x_angles))
     if H_lin is None:
         update, upd_args = Kernel(_update, (("h", h_), ("H_jac", H_jac_)) + meas, user), ()
     else:  # a linear measurement: H travels as an array (no closure over it)
-        update, upd_args = Kernel(_update_linear, meas), (H_lin,)
+        update, upd_args = Kernel(_update_linear, meas), (Given(h, H_lin),)
     upd_steps = ()
-    T = zs.shape[0]
+    T = zs_h.shape[0]
     if R_seq is not None:  # one covariance per step, next to the measurement
         try:  # batch axes of R align from the right, after the time axis
-            R_seq = R_seq.reshape((T,) + (1,) * max(len(batch) - (R_seq.ndim - 3), 0) + R_seq.shape[1:])
-            R_seq = np.broadcast_to(R_seq, (T,) + batch + (m, m))
+            R_seq = _time_batch(np, R_seq, T, batch, (m, m))
         except ValueError:
             raise ValueError(f"R must have shape (T, ..., {m}, {m}) matching the batch {batch}, "
                              f"got {R_seq.shape}") from None
-        gone_b = np.broadcast_to(row_missing, (T,) + batch)
-        R_seq = np.where(gone_b[..., None, None], np.eye(m), R_seq)  # unused there; keeps S invertible
-        upd_steps = (R_seq,)
+        if gone is not None:  # unused at the missing rows; the identity keeps S invertible
+            R_seq = np.where(_time_batch(np, gone, T, batch, ())[..., None, None], np.eye(m), R_seq)
+        R_raw = R_seq
+        if is_tracer(R):  # the caller's abstract R, prepared the same way inside the trace
+            jnp = _jax().numpy
+            R_raw = _time_batch(jnp, R, T, batch, (m, m))
+            g = jnp.isnan(zs).all(-1) if gone is None else gone
+            R_raw = jnp.where(_time_batch(jnp, g, T, batch, ())[..., None, None], jnp.eye(m, dtype=R_raw.dtype),
+                              R_raw)
+        upd_steps = (Given(R_raw, R_seq),)
     else:
-        upd_args = upd_args + (R,)
-    return run_filter(zs, row_missing, x0, P0, batch, predict, update, pred_args=pred_args, upd_args=upd_args,
-                      upd_steps=upd_steps, sources=sources, dtype=dtype, progress=progress)
+        upd_args = upd_args + (Given(R, R_h),)
+    return run_filter(Given(zs, zs_h), gone, Given(x0, x0_h), Given(P0, P0_h), batch, predict, update,
+                      pred_args=pred_args, upd_args=upd_args, upd_steps=upd_steps, sources=sources, dtype=dtype,
+                      progress=progress)
+
+
+def _time_batch(xp, a, T: int, batch: tuple, tail: tuple):
+    """``a`` ``(T, ..., *tail)``, its batch axes aligned from the right after the time axis,
+    broadcast to ``(T, *batch, *tail)`` (a ``ValueError`` if they do not broadcast)."""
+    nb = a.ndim - 1 - len(tail)
+    a = xp.reshape(a, (T,) + (1,) * max(len(batch) - nb, 0) + tuple(a.shape[1:]))
+    return xp.broadcast_to(a, (T,) + batch + tail)
 
 
 # adapters from the engines' argument order (x, P, arrays..., static options) to the kernels
@@ -262,14 +287,27 @@ def _update_linear(x, P, z, H, R, *, angles, x_angles):
     return _k_update(x, P, z, lambda s: mv(H, s), lambda s: H, R, angles, x_angles)
 
 
-def _per_step(R, zs) -> tuple[np.ndarray, np.ndarray]:
+def _per_step(R, zs, missing) -> tuple[np.ndarray, np.ndarray]:
     """Check a time-first ``R`` ``(T, ..., m, m)`` against ``zs`` ``(T, ..., m)``; return it and
-    its first step (for the shared boundary checks)."""
-    zs_arr = np.asarray(zs, dtype=float)
+    its first step (for the shared boundary checks). The covariances of rows not used (rows of NaN
+    of ``zs``, or marked by a ``missing`` mask) may be NaN: they are replaced by the identity."""
+    zs_arr = np.asarray(stand_in(zs, "vector"), dtype=float)
     R = as_float_array(R, "R")
-    gone = np.isnan(zs_arr).all(-1) if zs_arr.ndim else np.zeros(())
+    if missing is None:
+        gone = np.isnan(zs_arr).all(-1) if zs_arr.ndim else np.zeros(())
+    elif isinstance(missing, np.ndarray) and missing.dtype == bool and missing.ndim:
+        gone = missing
+    else:
+        gone = np.zeros(())
     if R.shape[:-2] == gone.shape and gone.any():  # steps without a measurement may carry NaN covariances
         R = np.where(gone[..., None, None], np.eye(R.shape[-1]), R)
+    elif gone.ndim and gone.any() and R.ndim >= 3 and R.shape[0] == gone.shape[0]:
+        try:
+            g = _time_batch(np, gone, R.shape[0], R.shape[1:-2], ())
+        except ValueError:
+            pass
+        else:
+            R = np.where(g[..., None, None], np.eye(R.shape[-1]), R)
     R = check_covariance(R, "R", zs_arr.shape[-1] if zs_arr.ndim else None, positive_definite=True)
     if R.ndim < 3 or R.shape[0] != zs_arr.shape[0]:
         raise ValueError(f"R must have shape (T, ..., m, m) with T = {zs_arr.shape[0] if zs_arr.ndim else '?'} "

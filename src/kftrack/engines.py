@@ -33,6 +33,26 @@ batch axes (``cov_batch = ()``), so the kernels compute it once per step and app
 every run's mean; ``nis`` and ``loglik`` stay per run. The NumPy engine returns the
 covariances as read-only broadcast views of the one ``(T, n, n)`` sequence.
 
+**The missing-row pattern is static.** Whether the covariances can be shared is decided when
+the loop is built, so the pattern must be known then; it comes from the filter's ``missing=``
+argument (:func:`kftrack._validate.check_missing`): ``None`` (default) takes the rows of NaN of
+a concrete ``zs``; ``False`` says no measurement is missing; a concrete boolean array
+``(T,)`` or ``(T, ...)`` marks the rows not to use. Inside the caller's ``jax.jit``,
+``jax.grad`` or ``jax.vmap`` the values of ``zs`` are not known: with ``missing=None`` the
+pattern is then derived inside the trace, run by run (``isnan(zs).all(-1)``, correct for any
+data, but the covariances are per run); with ``missing=False`` or a concrete mask the traced
+call takes the same path as the direct one (shared covariances; with no row missing, no
+selection in the loop either). Under ``jax.vmap`` a covariance recursion that depends on no
+mapped input stays unbatched.
+
+**Composition.** A filter called inside the caller's ``jax.jit``, ``jax.grad`` or ``jax.vmap``
+validates the shapes of the abstract values (:func:`stand_in`; their values cannot be checked
+there), then traces the same compiled loop as a direct call: the loop is an inner ``jax.jit``,
+inlined into the caller's program, so outputs the caller does not use (``x_prior``, ``P``,
+...) are dropped from the compiled program by dead-code elimination (``tests/test_compose.py``
+checks its memory: ``jit(lambda z: kalman_filter(...).x)`` compiles to the same program with
+``priors=True`` and ``priors=False``), and no Python runs per call beyond the tracing.
+
 **Outputs.** Both drivers return the predictions ``x_prior``, ``P_prior``, the posteriors ``x``,
 ``P`` and ``nis``, ``loglik`` of every step; with ``priors=False`` neither stores the
 predictions (``x_prior``, ``P_prior`` are None; the JAX engine's compiled loop then has no such
@@ -54,7 +74,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validate import as_float_array, check_finite
+from ._validate import as_float_array, check_finite, is_tracer, stand_in
 from .kernels import _NUMPY, kf_predict, kf_update, logsumexp, moment_match, rts_step
 from .results import FilterResult
 
@@ -141,12 +161,6 @@ def use_jax(*arrays) -> bool:
     return any(isinstance(a, jax.Array) for a in arrays)
 
 
-def is_tracer(a) -> bool:
-    """True for an abstract JAX value (inside ``jit``, ``grad``, ``vmap``): shapes only, no values."""
-    jax = sys.modules.get("jax")
-    return jax is not None and isinstance(a, jax.core.Tracer)
-
-
 def check_dtype(dtype, jax_engine: bool):
     """The floating dtype of a computation: ``None`` or ``"float64"`` (the default), or
     ``"float32"`` (explicit, with its loss of about 9 decimal digits: relative round-off
@@ -183,18 +197,6 @@ def choose_engine(*arrays, dtype=None) -> tuple[bool, np.dtype]:
     return jax_engine, check_dtype(dtype, jax_engine)
 
 
-def stand_in(value, kind: str):
-    """A NumPy stand-in of the same shape for an abstract JAX value (inside ``jit``/``grad``), so the
-    boundary checks still check its shape (values cannot be checked there); the value itself
-    otherwise. ``kind``: ``"cov"`` (identity matrices), ``"matrix"``/``"vector"`` (zeros)."""
-    if not is_tracer(value):
-        return value
-    shape = tuple(value.shape)
-    if kind == "cov" and len(shape) >= 2 and shape[-1] == shape[-2]:
-        return np.broadcast_to(np.eye(shape[-1]), shape)
-    return np.zeros(shape)
-
-
 class Given(NamedTuple):
     """An array argument of a filter as the caller gave it (``raw``) and as checked at the boundary
     (``checked``, a NumPy array; for an abstract JAX value the :func:`stand_in` of its shape).
@@ -221,8 +223,9 @@ def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(),
     ----------
     zs, x0, P0, pred_args, pred_steps, upd_args, upd_steps : the arrays of :func:`run_sequence`,
         each checked (NumPy) or a :class:`Given` pair ``(caller's value, checked value)``.
-    gone : (T, ...) bool, the missing rows of the checked ``zs``; computed from the caller's
-        ``zs`` inside a trace (where the checked one is a stand-in).
+    gone : (T, ...) bool, the rows not to use (:func:`kftrack._validate.check_missing`), a
+        concrete NumPy array; or None when only the trace knows them (an abstract ``zs`` with
+        ``missing=None``): then ``isnan(zs).all(-1)`` of the caller's ``zs``, per run.
     batch : the batch shape of the means.
     predict, update : :class:`Kernel` objects.
     sources : further caller's values that choose the engine (with the raw values of the
@@ -240,8 +243,8 @@ def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(),
     """
     raws = [a.raw for a in (zs, x0, P0, *pred_args, *pred_steps, *upd_args, *upd_steps) if type(a) is Given]
     jax_engine, dt = choose_engine(*raws, *sources, dtype=dtype)
-    zs_raw = zs.raw if type(zs) is Given else zs
-    if is_tracer(zs_raw):  # missing rows known only inside the trace
+    if gone is None:  # the missing rows are known only inside the trace: derived there, run by run
+        zs_raw = zs.raw if type(zs) is Given else zs
         gone = _jax().numpy.isnan(zs_raw).all(-1)
     elif cov_shapes is not None and gone.ndim > 1:
         T = gone.shape[0]
@@ -250,8 +253,12 @@ def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(),
             gone = flat[:, 0]
     cov_batch = batch if cov_shapes is None else np.broadcast_shapes(*cov_shapes, tuple(gone.shape[1:]))
     conv = lambda a: to_engine(_value(a, jax_engine), jax_engine, dt)  # noqa: E731
+    if jax_engine and type(gone) is np.ndarray and not gone.any():
+        gone_e = None  # no row missing (static): the compiled loop updates without selecting
+    else:
+        gone_e = conv(gone)
     return (run_scan if jax_engine else run_sequence)(
-        conv(zs), conv(gone), conv(x0), conv(P0), tuple(batch), tuple(cov_batch), predict, update,
+        conv(zs), gone_e, conv(x0), conv(P0), tuple(batch), tuple(cov_batch), predict, update,
         pred_args=tuple(map(conv, pred_args)), pred_steps=tuple(map(conv, pred_steps)),
         upd_args=tuple(map(conv, upd_args)), upd_steps=tuple(map(conv, upd_steps)), progress=progress,
         priors=bool(priors))
@@ -311,14 +318,19 @@ class Kernel(NamedTuple):
 
 def _step(xp, predict, update, x, P, z, g, pred_args, pk, upd_args, uk, last):
     """One step of every whole-sequence filter, on either engine: update with ``z`` where ``g``
-    (missing) is False, keep the prior where it is True, then predict unless ``last``.
+    (missing) is False, keep the prior where it is True, then predict unless ``last``. ``g``
+    None: no row is missing (known statically), the update is taken as it is.
     Returns ``(x_post, P_post, nis, loglik, x_next, P_next)``."""
-    gx = g[..., None]
-    u = update(x, P, xp.where(gx, xp.zeros((), dtype=z.dtype), z), *upd_args, *uk)
-    nan = xp.asarray(float("nan"), dtype=x.dtype)
-    x_post = xp.where(gx, x, u.x)
-    P_post = xp.where(gx[..., None], P, u.P)
-    nis, ll = xp.where(g, nan, u.nis), xp.where(g, nan, u.loglik)
+    if g is None:
+        u = update(x, P, z, *upd_args, *uk)
+        x_post, P_post, nis, ll = u.x, u.P, u.nis, u.loglik
+    else:
+        gx = g[..., None]
+        u = update(x, P, xp.where(gx, xp.zeros((), dtype=z.dtype), z), *upd_args, *uk)
+        nan = xp.asarray(float("nan"), dtype=x.dtype)
+        x_post = xp.where(gx, x, u.x)
+        P_post = xp.where(gx[..., None], P, u.P)
+        nis, ll = xp.where(g, nan, u.nis), xp.where(g, nan, u.loglik)
     if last:
         return x_post, P_post, nis, ll, x_post, P_post
     x_next, P_next = predict(x_post, P_post, *pred_args, *pk)
@@ -450,7 +462,8 @@ def _scan_impl(zs, gone, x0, P0, pred_args, pred_steps, upd_args, upd_steps, *, 
 
     def step(k, carry):
         x, P = carry
-        x_post, P_post, nis, ll, x_next, P_next = _step(jnp, predict, update, x, P, at(zs, k), at(gone, k),
+        g = None if gone is None else at(gone, k)
+        x_post, P_post, nis, ll, x_next, P_next = _step(jnp, predict, update, x, P, at(zs, k), g,
                                                         pred_args, tuple(at(a, k) for a in pred_steps), upd_args,
                                                         tuple(at(a, k) for a in upd_steps), False)
         out = ((x, P) if priors else (None, None)) + (  # None: not a loop output, nothing stored
@@ -475,7 +488,8 @@ def run_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, 
     """The JAX engine: the step of :func:`run_sequence` under ``jax.lax.scan``, compiled with
     ``jax.jit`` (once per kernel, options and shapes). Same arguments and result as
     :func:`run_sequence`, as JAX arrays; ``progress`` is ignored (the loop runs compiled).
-    Every step runs the update on all runs and selects the prior where a row is missing.
+    Every step runs the update on all runs and selects the prior where a row is missing
+    (``gone`` None: no row is missing, no selection).
     With ``priors=False`` the predictions are not outputs of the loop (the compiled program
     neither stores nor returns them; ``x_prior``, ``P_prior`` are None)."""
     out = _scan_jit()(zs, gone, x0, P0, tuple(pred_args), tuple(pred_steps), tuple(upd_args), tuple(upd_steps),

@@ -34,8 +34,8 @@ import math
 
 import numpy as np
 
-from ._validate import (as_matrix, as_measurement_sequence, as_vector, broadcast_batch, check_covariance, check_finite,
-                        check_form, check_state)
+from ._validate import (as_matrix, as_vector, broadcast_batch, check_covariance, check_finite, check_form,
+                        check_missing, check_state)
 from .engines import Given, Kernel, PerDt, check_dts, run_filter, run_smoother_scan, stand_in, to_engine, use_jax
 from .kernels import Update, kf_correct, kf_gain, kf_predict, kf_score, kf_update, rts_step
 from .results import FilterResult, SmootherResult  # re-exported: the result types live at the bottom
@@ -168,12 +168,13 @@ def _transitions(F, Q, n: int, T: int, dt, time_varying: bool, what: str = "x0",
 
 
 def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, times=None, time_varying: bool = False,
-                  progress: bool = False, dtype=None, priors: bool = True) -> FilterResult:
+                  progress: bool = False, dtype=None, priors: bool = True, missing=None) -> FilterResult:
     r"""Filter a whole measurement sequence: at each step update with ``zs[k]``, then predict.
 
     A measurement row that is all NaN means "no measurement at this step": the filter only
-    predicts across it. Validation happens once here; the loop runs unchecked kernels
-    (:mod:`kftrack.kernels`) with one of the two drivers of :mod:`kftrack.engines`.
+    predicts across it (or say which rows are missing with ``missing=``). Validation happens
+    once here; the loop runs unchecked kernels (:mod:`kftrack.kernels`) with one of the two
+    drivers of :mod:`kftrack.engines`.
 
     The transition comes in one of three forms:
 
@@ -214,6 +215,22 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, times=None, time_varying: 
         memory (``n + n²`` of the ``2n + 2n² + 2`` numbers per run and step; with shared
         covariances, which the NumPy engine stores once, the ``n`` of ``x_prior`` per run and step).
         ``x``, ``P``, ``nis``, ``loglik`` are the same (NumPy engine: the same bits).
+    missing : which measurement rows are not used, known before the data are seen:
+
+        * None (default): the rows of NaN of ``zs``;
+        * False: none (every row of ``zs`` must then be finite);
+        * a boolean NumPy array ``(T,)`` (the same steps for all runs) or ``(T, ...)`` (batch
+          axes broadcasting to those of ``zs``): True where the row is not used, whatever it
+          holds; the other rows must be finite.
+
+        Inside your own ``jax.jit``, ``jax.grad`` or ``jax.vmap`` the values of ``zs`` are not
+        known when the filter is traced, so with None the missing rows are found inside the
+        trace, run by run, and the covariance recursion, which dominates the cost on small
+        states, is repeated for every run (correct for any data). ``missing=False`` or a mask is
+        static information: the traced call then takes the path of a direct call (covariances
+        computed once for all runs), e.g. ``jax.jit(lambda z: kalman_filter(z, x0, P0, F, Q, H, R,
+        missing=False).x)``. Inside a trace the values of ``zs`` cannot be checked: a NaN in a row
+        used propagates.
 
     Returns
     -------
@@ -224,6 +241,9 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, times=None, time_varying: 
         NumPy arrays otherwise. When no covariance input has batch axes and all runs miss the
         same rows, the covariance recursion is computed once for all runs (it does not depend on
         the data); the NumPy engine then returns ``P``, ``P_prior`` as read-only broadcast views.
+        Inside ``jax.jit``, ``jax.grad`` and ``jax.vmap`` the inputs may be abstract: their
+        shapes are checked, their values are not (see ``missing``); outputs you do not use are
+        not computed (XLA drops them from the compiled program).
 
     Raises
     ------
@@ -232,7 +252,7 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, times=None, time_varying: 
     """
     if not isinstance(priors, (bool, np.bool_)):
         raise TypeError(f"priors must be True or False, got {priors!r}")
-    zs_h, gone = as_measurement_sequence(stand_in(zs, "vector"), "zs")
+    zs_h, gone = check_missing(zs, missing)
     T, m = zs_h.shape[0], zs_h.shape[-1]
     x0_h, P0_h, n = check_state(stand_in(x0, "vector"), stand_in(P0, "cov"), ("x0", "P0"))
     R_h = check_covariance(stand_in(R, "cov"), "R", m, positive_definite=True, origin=f"m = {m} from zs")

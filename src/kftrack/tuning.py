@@ -42,7 +42,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validate import as_float_array, as_measurement_sequence, check_finite
+from ._validate import as_float_array, check_finite, check_missing
 from .engines import _jax, check_dts, use_jax
 from .kalman import kalman_filter
 
@@ -169,18 +169,16 @@ def _time_varying(build, time_varying) -> bool:
     return bool(time_varying)
 
 
-def _check_zs(zs) -> None:
-    """At least one measured row (concrete ``zs`` only; a JAX tracer cannot be inspected)."""
-    from .engines import is_tracer
-
-    if is_tracer(zs):
-        return
-    _, gone = as_measurement_sequence(zs, "zs")
-    if gone.all():
-        raise ValueError("zs has no measured row (every row is NaN): the likelihood is not defined")
+def _check_zs(zs, missing=None) -> None:
+    """At least one measured row (known for a concrete ``zs`` or a ``missing`` mask; the values of a
+    JAX tracer cannot be inspected)."""
+    _, gone = check_missing(zs, missing)
+    if gone is not None and gone.all():
+        raise ValueError("zs has no measured row (every row is NaN, or marked in missing): the likelihood is not "
+                         "defined")
 
 
-def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool | None = None):
+def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool | None = None, missing=None):
     r"""Total innovation log-likelihood :math:`\ell(e^\phi)` of the measurements (nats).
 
     .. math::
@@ -207,6 +205,9 @@ def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool 
     time_varying : whether ``F``, ``Q`` carry a leading time axis ``T``; default (None) the
         ``time_varying`` attribute of ``build`` if it has one (:class:`WhiteNoiseBuild`), else
         False.
+    missing : None (the rows of NaN of ``zs`` are missing), False (none is) or a boolean mask of
+        the rows not to use, as in :func:`kftrack.kalman.kalman_filter`: inside your own
+        ``jax.jit`` of batched data, False or a mask keeps the covariances shared by the runs.
 
     Returns
     -------
@@ -222,7 +223,7 @@ def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool 
     lp, jax_engine = _check_log_params(log_params)
     _check_build(build)
     tv = _time_varying(build, time_varying)
-    _check_zs(zs)
+    _check_zs(zs, missing)
     if jax_engine:
         jnp = _jax().numpy
         zs, x0, P0 = (a if use_jax(a) else jnp.asarray(np.asarray(a, dtype=float)) for a in (zs, x0, P0))
@@ -234,7 +235,7 @@ def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool 
         raise TypeError(f"build must return a tuple (F, Q, H, R), got {type(out).__name__}"
                         + (f" of length {len(out)}" if isinstance(out, tuple) else ""))
     F, Q, H, R = out
-    res = kalman_filter(zs, x0, P0, F, Q, H, R, time_varying=tv, priors=False)  # only loglik is needed
+    res = kalman_filter(zs, x0, P0, F, Q, H, R, time_varying=tv, priors=False, missing=missing)  # only loglik
     expect = np.broadcast_shapes(tuple(np.shape(zs)[1:-1]), tuple(np.shape(x0)[:-1]))
     if tuple(res.loglik.shape[1:]) != expect:
         raise ValueError(f"build: F, Q, H or R add batch axes {tuple(res.loglik.shape[1:])} to those of zs and x0 "

@@ -37,10 +37,10 @@ from typing import NamedTuple
 import numpy as np
 
 from ._validate import (as_matrix, as_vector, broadcast_batch, call_checked, check_angles, check_covariance,
-                        check_sequence, check_state)
+                        check_sequence, check_state, stand_in)
 from .kernels import Update
 from .results import FilterResult
-from .engines import Kernel, run_filter
+from .engines import Given, Kernel, run_filter
 from .kernels import SigmaPoints, moments, mv, sigma_points, ukf_predict as _k_predict
 from .kernels import ukf_update as _k_update
 from .kernels import unscented as _k_unscented
@@ -276,7 +276,7 @@ def ukf_update(x, P, z, h: Vector | np.ndarray, R, points: Points | None = None,
 
 def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector | np.ndarray, R, points: Points | None = None,
                             angle_components: Sequence[int] = (), state_angles: Sequence[int] = (),
-                            *, progress: bool = False, dtype=None) -> FilterResult:
+                            *, progress: bool = False, dtype=None, missing=None) -> FilterResult:
     r"""Filter a whole measurement sequence with the UKF: update with ``zs[k]``, then predict.
 
     Same conventions as :func:`kftrack.kalman.kalman_filter` and
@@ -287,7 +287,11 @@ def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector | np.ndarray, R,
     (default), or ``"float32"`` (explicit, about nine decimal digits lost); see
     :func:`kftrack.kalman.kalman_filter`. With JAX arrays among ``zs``, ``x0``, ``P0``, ``Q``,
     ``R`` the JAX engine runs (JAX arrays out); ``f`` and ``h`` must then be written with
-    ``jax.numpy`` (the same function objects reuse the compiled loop); concrete arrays only.
+    ``jax.numpy`` or the array API (the same function objects reuse the compiled loop). The
+    filter composes: inside ``jax.jit``, ``jax.grad`` and ``jax.vmap`` the shapes of abstract
+    inputs are checked, not their values. ``missing``: None (rows of NaN of ``zs`` are missing),
+    False (none is) or a boolean mask ``(T,)`` or ``(T, ...)`` of the rows not to use, as in
+    :func:`kftrack.kalman.kalman_filter`.
 
     ``P0`` may be positive semi-definite (a known start, ``P0 = 0``): where the Cholesky factor
     of :math:`cP` does not exist, the sigma points use the symmetric square root
@@ -301,23 +305,24 @@ def unscented_kalman_filter(zs, x0, P0, f: Vector, Q, h: Vector | np.ndarray, R,
     """
     sources = (zs, x0, P0, Q, R)  # the caller's arrays choose the engine
     points = check_points(points)
-    zs, x0, P0, Q, R, n, m, batch, row_missing = check_sequence(zs, x0, P0, Q, R)
-    _check_points_input(x0, P0)
+    zs_h, x0_h, P0_h, Q_h, R_h, n, m, batch, gone = check_sequence(zs, x0, P0, Q, R, missing)
+    _check_points_input(x0_h, P0_h)
     x_angles = check_angles(state_angles, n, "state_angles")
     z_angles = check_angles(angle_components, m)
-    xb = np.broadcast_to(x0, batch + (n,))
+    xb = np.broadcast_to(x0_h, batch + (n,))
+    h_h = h if callable(h) else stand_in(h, "matrix")
     call_checked(f, xb, "f", (n,))
-    call_checked(_measurement(h, n, m), xb, "h", (m,))
+    call_checked(_measurement(h_h, n, m), xb, "h", (m,))
     opts = (("points", points), ("x_angles", x_angles))
     user = (("f", "f"), ("h", "h"))
     predict = Kernel(_predict, (("f", f),) + opts, user)
     if callable(h):
-        update, upd_args = Kernel(_update, (("h", h), ("z_angles", z_angles)) + opts, user), (R,)
+        update, upd_args = Kernel(_update, (("h", h), ("z_angles", z_angles)) + opts, user), (Given(R, R_h),)
     else:  # a linear measurement: H travels as an array (no closure over it)
-        H = as_matrix(h, "h", m, n)
-        update, upd_args = Kernel(_update_linear, (("z_angles", z_angles),) + opts), (H, R)
-    return run_filter(zs, row_missing, x0, P0, batch, predict, update, pred_args=(Q,), upd_args=upd_args,
-                      sources=sources, dtype=dtype, progress=progress)
+        H = as_matrix(h_h, "h", m, n)
+        update, upd_args = Kernel(_update_linear, (("z_angles", z_angles),) + opts), (Given(h, H), Given(R, R_h))
+    return run_filter(Given(zs, zs_h), gone, Given(x0, x0_h), Given(P0, P0_h), batch, predict, update,
+                      pred_args=(Given(Q, Q_h),), upd_args=upd_args, sources=sources, dtype=dtype, progress=progress)
 
 
 # adapters from the engines' argument order (x, P, arrays..., static options) to the kernels

@@ -1,0 +1,271 @@
+"""Every whole-sequence filter composes with JAX's transformations (issue 27): kalman_filter,
+rts_smoother, extended_kalman_filter and unscented_kalman_filter run inside the caller's
+jax.jit, jax.vmap (over data and over a noise parameter) and jax.grad of their total
+log-likelihood; the static missing-row pattern (missing=) keeps the shared-covariance path
+inside a trace; outputs the caller drops are not computed.
+
+Bounds. Values: the engines' round-off bound of tests/test_engines.py, |difference| <= T n kappa
+eps scale per field (T steps, n the state size, 2n + 1 for the UKF's sigma points, kappa the
+largest condition number of the innovation covariances met, cond(P_prior) too for the
+smoother). Gradients: the exact JAX gradient against central differences of the NumPy engine
+with step h (tests/test_tuning.py's _central_difference: truncation h^2 |f'''| / 6 with f'''
+estimated by a 5-point difference, plus round-off delta / h), where delta, the round-off of one
+evaluation of the NumPy objective (a sum of N terms), is N times the engines' bound of one term,
+N T n kappa eps max|term|; the JAX gradient's own round-off is bounded by the same delta (the
+reverse pass is as many backward-stable operations per term). Each gradient check has power: a
+gradient 1 % off would fail it (twice the bound is below 1 % of every component).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from kftrack import engines
+from kftrack.ekf import extended_kalman_filter
+from kftrack.kalman import kalman_filter, rts_smoother
+from kftrack.ukf import unscented_kalman_filter
+from test_engines import EPS64, MODEL, F_jac, H_jac, _agree, cond_S, data, f, h, polar_data
+from test_engines import H as H_CV
+from test_engines import R as R_CV
+from test_tuning import _central_difference
+
+jax.config.update("jax_enable_x64", True)  # the engines' float64 default needs it (see kftrack.engines)
+
+T, RUNS = 25, 4
+F_CV, QBAR = MODEL.F(1.0), MODEL.Q(1.0)  # Q = q * QBAR: q a factor on the model's spectral density
+R_POLAR = np.diag([1.0, 1e-4])  # range (m^2) and bearing (rad^2) variances, times r
+PHI = np.log([0.8, 1.3])  # (log q, log r): away from the maximum, so the gradient is O(1-100)
+STEP = 1e-3  # central-difference step in phi
+# the tests' own jit: XLA's backend optimisation level 0 compiles in about half the time (as in
+# tests/test_tuning.py); the same computation, so the same bounds hold
+JIT = {"compiler_options": {"xla_backend_optimization_level": 0}}
+
+
+def _kf(zs, x0, P0, q, r, **kw):
+    return kalman_filter(zs, x0, P0, F_CV, q * QBAR, H_CV, r * R_CV, **kw)
+
+
+def _ekf(zs, x0, P0, q, r, **kw):
+    return extended_kalman_filter(zs, x0, P0, f, F_jac, q * QBAR, h, H_jac, r * R_POLAR, angle_components=[1],
+                                  **kw)
+
+
+def _ukf(zs, x0, P0, q, r, **kw):
+    return unscented_kalman_filter(zs, x0, P0, f, q * QBAR, h, r * R_POLAR, angle_components=[1], **kw)
+
+
+def _cond_polar(res, r):
+    """Largest condition number of H P^- H^T + R, H the range-bearing Jacobian at the prediction."""
+    Hs = H_jac(np.asarray(res.x_prior))
+    S = Hs @ np.asarray(res.P_prior) @ np.swapaxes(Hs, -1, -2) + r * R_POLAR
+    return float(np.max(np.linalg.cond(S.reshape(-1, 2, 2))))
+
+
+# name: (filter, data maker, state size in the bound, condition number of a NumPy result at r)
+FILTERS = {
+    "kalman": (_kf, lambda: data(np.random.default_rng(21), T=T, runs=RUNS), 4,
+               lambda res, r: cond_S(res, H_CV, r * R_CV)),
+    "ekf": (_ekf, lambda: polar_data(np.random.default_rng(22), T=T, runs=RUNS), 4, _cond_polar),
+    "ukf": (_ukf, lambda: polar_data(np.random.default_rng(23), T=T, runs=RUNS), 9, _cond_polar),
+}
+
+
+# --------------------------------------------------------------------------------------------
+# jit and vmap: the same numbers as the NumPy engine
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", FILTERS)
+def test_jit_and_vmap_agree_with_the_numpy_engine(name):
+    run, make, n, cond = FILTERS[name]
+    zs, x0, P0 = make()  # rows of NaN for every run and for one run only
+    zj = jnp.asarray(zs)
+    ref = run(zs, x0, P0, 1.0, 1.0)
+    _agree(ref, jax.jit(lambda z: run(z, x0, P0, 1.0, 1.0), **JIT)(zj), T, n, cond(ref, 1.0))
+    # vmap over a noise level r of vmap over the runs (each run filtered alone, batch (), its
+    # missing rows found inside the trace), under jit: one compiled program
+    rs = np.array([0.5, 2.0])
+    over_data = lambda r: jax.vmap(lambda z: run(z, x0, P0, 1.0, r), in_axes=1, out_axes=1)(zj)  # noqa: E731
+    mapped = jax.jit(jax.vmap(over_data), **JIT)(jnp.asarray(rs))
+    for i, r in enumerate(rs):
+        ref = run(zs, x0, P0, 1.0, r)
+        _agree(ref, [None if v is None else v[i] for v in mapped], T, n, cond(ref, r), names=ref._fields)
+
+
+# --------------------------------------------------------------------------------------------
+# grad of the total log-likelihood: the exact JAX gradient against central differences
+# --------------------------------------------------------------------------------------------
+def _loglik_delta(res, n, kappa) -> float:
+    """Round-off of the NumPy engine's nansum(loglik): N terms, each within the engines' bound
+    T n kappa eps max|l_k| (module docstring)."""
+    ll = np.asarray(res.loglik)
+    return np.sum(np.isfinite(ll)) * T * n * kappa * EPS64 * float(np.nanmax(np.abs(ll)))
+
+
+def _check_gradient(grad, fd, bound, what):
+    for i in range(len(grad)):
+        print(f"{what} d/dphi_{i}: jax {grad[i]:.9g}, central difference {fd[i]:.9g}, |diff| "
+              f"{abs(grad[i] - fd[i]):.1e} <= {bound[i]:.1e} ({bound[i] / abs(grad[i]):.1e} of |grad|)")
+        # power: a gradient 1 % off is at least 0.01 |g| - bound from the difference quotient, above the bound
+        assert 2 * bound[i] < 0.01 * abs(grad[i]), (what, i, grad[i], bound[i])
+        assert abs(grad[i] - fd[i]) <= bound[i], (what, i, grad[i], fd[i], bound[i])
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_grad_of_the_total_loglik_matches_central_differences(name):
+    run, make, n, cond = FILTERS[name]
+    zs, x0, P0 = make()
+    zj = jnp.asarray(zs)
+
+    def ell_np(phi):
+        return float(np.nansum(run(zs, x0, P0, np.exp(phi[0]), np.exp(phi[1])).loglik))
+
+    vg = jax.jit(jax.value_and_grad(lambda p: jnp.nansum(run(zj, x0, P0, jnp.exp(p[0]), jnp.exp(p[1])).loglik)),
+                 **JIT)
+    value, grad = vg(jnp.asarray(PHI))
+    ref = run(zs, x0, P0, *np.exp(PHI))
+    delta = _loglik_delta(ref, n, cond(ref, np.exp(PHI[1])))
+    assert abs(float(value) - ell_np(PHI)) <= 2 * delta
+    fd, bound = _central_difference(ell_np, PHI, np.full(2, STEP), delta)
+    _check_gradient(np.asarray(grad), fd, bound + delta, name)
+
+
+# --------------------------------------------------------------------------------------------
+# the RTS smoother
+# --------------------------------------------------------------------------------------------
+def test_rts_smoother_composes():
+    zs, x0, P0 = data(np.random.default_rng(24), T=T, runs=RUNS)
+    zj = jnp.asarray(zs)
+
+    def smooth(z, q):
+        return rts_smoother(_kf(z, x0, P0, q, 1.0), F_CV)
+
+    ref = smooth(zs, 1.0)
+    fil = _kf(zs, x0, P0, 1.0, 1.0)
+    k = max(cond_S(fil, H_CV, R_CV), float(np.max(np.linalg.cond(np.asarray(fil.P_prior).reshape(-1, 4, 4)))))
+    _agree(ref, jax.jit(lambda z: smooth(z, 1.0), **JIT)(zj), T, 4, k)
+    qs = np.array([0.5, 2.0])  # vmap over q of vmap over the runs, under jit
+    over_data = lambda q: jax.vmap(lambda z: smooth(z, q), in_axes=1, out_axes=1)(zj)  # noqa: E731
+    mapped = jax.jit(jax.vmap(over_data), **JIT)(jnp.asarray(qs))
+    for i, q in enumerate(qs):
+        _agree(smooth(zs, q), [v[i] for v in mapped], T, 4, k, names=ref._fields)
+
+    # grad of a smoothing fit, the squared distance of the smoothed positions to the measurements
+    # (the missing rows masked with where, before the difference: a NaN there would make the
+    # gradient NaN, 0 * NaN, even where its value is dropped)
+    gone = np.isnan(zs)
+    z0 = np.where(gone, 0.0, zs)
+
+    def fit(x_s, xp):
+        return xp.sum(xp.where(gone, 0.0, z0 - x_s[..., ::2]) ** 2)
+
+    def fit_np(phi):
+        return float(fit(smooth(zs, np.exp(phi[0])).x, np))
+
+    g = np.asarray(jax.jit(jax.grad(lambda p: fit(smooth(zj, jnp.exp(p[0])).x, jnp)), **JIT)(jnp.asarray(PHI[:1])))
+    # round-off: N squared residuals e, each |d(e^2)| <= 2 |e| |d e|, |d e| within the engines' bound of x_s
+    xs = np.asarray(ref.x)
+    resid = np.where(gone, 0.0, np.abs(z0 - xs[..., ::2]))
+    delta = 2 * np.sum(resid) * T * 4 * k * EPS64 * np.max(np.abs(xs))
+    fd, bound = _central_difference(fit_np, PHI[:1], np.full(1, STEP), delta)
+    _check_gradient(g, fd, bound + delta, "rts")
+
+
+# --------------------------------------------------------------------------------------------
+# the static missing-row pattern: the shared-covariance path inside a trace
+# --------------------------------------------------------------------------------------------
+@pytest.fixture
+def spy(monkeypatch):
+    """Records (cov_batch, gone is None) of every call of the JAX engine's driver."""
+    calls = []
+    real = engines.run_scan
+
+    def run_scan(zs, gone, x0, P0, batch, cov_batch, *args, **kw):
+        calls.append((tuple(cov_batch), gone is None))
+        return real(zs, gone, x0, P0, batch, cov_batch, *args, **kw)
+
+    monkeypatch.setattr(engines, "run_scan", run_scan)
+    return calls
+
+
+def test_missing_makes_the_traced_call_take_the_direct_path(spy):
+    zs, x0, P0 = data(np.random.default_rng(25), T=T, runs=RUNS, missing="none")
+    zj = jnp.asarray(zs)
+    ref = _kf(zs, x0, P0, 1.0, 1.0)
+    k = cond_S(ref, H_CV, R_CV)
+    direct = _kf(zj, x0, P0, 1.0, 1.0)
+    assert spy[-1] == ((), True)  # a direct call: shared covariances, no selection (no row missing)
+    for missing, path in ((None, ((RUNS,), False)), (False, ((), True)), (np.zeros(T, bool), ((), True)),
+                          (np.zeros((T, RUNS), bool), ((), True))):
+        res = jax.jit(lambda z, m=missing: _kf(z, x0, P0, 1.0, 1.0, missing=m), **JIT)(zj)
+        assert spy[-1] == path, missing  # None: per run, found inside the trace; static: as a direct call
+        _agree(ref, res, T, 4, k)
+    _agree(ref, direct, T, 4, k)
+    # a pattern shared by the runs stays shared (selection in the loop), one run's own pattern does not
+    shared, one_run = np.zeros(T, bool), np.zeros((T, RUNS), bool)
+    shared[[3, 8]] = True
+    one_run[5, 2] = True
+    for mask, cov_batch in ((shared, ()), (one_run, (RUNS,))):
+        z = zs.copy()
+        z[np.broadcast_to(mask if mask.ndim == 2 else mask[:, None], z.shape[:-1])] = np.nan
+        ref = _kf(z, x0, P0, 1.0, 1.0)
+        res = jax.jit(lambda zz, m=mask: _kf(zz, x0, P0, 1.0, 1.0, missing=m), **JIT)(jnp.asarray(z))
+        assert spy[-1] == (cov_batch, False)
+        _agree(ref, res, T, 4, cond_S(ref, H_CV, R_CV))
+    # under vmap a covariance recursion that depends on no mapped input stays unbatched
+    spy.clear()
+    jax.vmap(lambda z: _kf(z, x0, P0, 1.0, 1.0, missing=False).x, in_axes=1)(zj)
+    assert spy[-1] == ((), True)
+
+
+def test_a_mask_ignores_what_the_masked_rows_hold():
+    zs, x0, P0 = data(np.random.default_rng(26), T=T, runs=RUNS)  # NaN rows: step 7, and two single runs
+    gone = np.isnan(zs).all(-1)
+    junk = zs.copy()
+    junk[gone] = 1e300  # anything: never used
+    junk[7, 1, 0] = np.nan  # a partly NaN row, masked
+    ref = _kf(zs, x0, P0, 1.0, 1.0)
+    got = _kf(junk, x0, P0, 1.0, 1.0, missing=gone)
+    assert all(np.array_equal(u, v, equal_nan=True) for u, v in zip(ref, got))  # the same operations: same bits
+    jit = jax.jit(lambda z: _kf(z, x0, P0, 1.0, 1.0, missing=gone), **JIT)(jnp.asarray(junk))
+    _agree(ref, jit, T, 4, cond_S(ref, H_CV, R_CV))
+    # the EKF and UKF take the same argument
+    for run in (_ekf, _ukf):
+        a = run(zs, x0, P0, 1.0, 1.0)
+        b = run(junk, x0, P0, 1.0, 1.0, missing=gone)
+        assert all(np.array_equal(u, v, equal_nan=True) for u, v in zip(a, b))
+
+
+def test_bad_missing_is_named():
+    zs, x0, P0 = data(np.random.default_rng(27), T=6, runs=2, missing="none")
+    zs[2, 1] = np.nan
+    with pytest.raises(ValueError, match=r"^zs has NaN at step 2 in a row that missing does not mark"):
+        _kf(zs, x0, P0, 1.0, 1.0, missing=False)
+    with pytest.raises(ValueError, match=r"^missing must have shape \(6,\) or \(6, \.\.\.\).*got shape \(5,\)"):
+        _kf(zs, x0, P0, 1.0, 1.0, missing=np.zeros(5, bool))
+    with pytest.raises(ValueError, match=r"^missing must have shape .*got shape \(6, 3\)"):
+        _kf(zs, x0, P0, 1.0, 1.0, missing=np.zeros((6, 3), bool))
+    with pytest.raises(TypeError, match=r"^missing must be None, False or a boolean array .*float64"):
+        _kf(zs, x0, P0, 1.0, 1.0, missing=np.zeros(6))
+    with pytest.raises(TypeError, match=r"^missing must be None, False or a boolean array"):
+        _kf(zs, x0, P0, 1.0, 1.0, missing=True)
+    with pytest.raises(TypeError, match=r"^missing must be concrete"):
+        jax.jit(lambda m: _kf(zs, x0, P0, 1.0, 1.0, missing=m).x)(jnp.zeros(6, bool))
+    with pytest.raises(ValueError, match=r"^R must have shape \(\.\.\., 2, 2\)"):  # shapes of tracers are checked
+        jax.grad(lambda s: jnp.nansum(extended_kalman_filter(jnp.asarray(zs), x0, P0, f, F_jac, MODEL.Q(1.0), h,
+                                                             H_jac, s * jnp.eye(3)).loglik))(1.0)
+
+
+def test_outputs_the_caller_drops_are_not_computed():
+    # jit(lambda z: kalman_filter(...).x) compiles to the program of the means alone: the same
+    # output and temporary memory with or without the predictions (XLA drops the dead outputs)
+    zs, x0, P0 = data(np.random.default_rng(28), T=50, runs=30, missing="none")
+    zj = jnp.asarray(zs)
+    mem = {}
+    for priors in (True, False):
+        fn = jax.jit(lambda z, p=priors: _kf(z, x0, P0, 1.0, 1.0, priors=p, missing=False).x)
+        mem[priors] = fn.lower(zj).compile().memory_analysis()
+    if mem[True] is None:
+        pytest.skip("this JAX backend reports no memory analysis")
+    assert mem[True].output_size_in_bytes == mem[False].output_size_in_bytes == zs.shape[0] * 30 * 4 * 8
+    assert mem[True].temp_size_in_bytes == mem[False].temp_size_in_bytes
