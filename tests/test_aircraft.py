@@ -210,7 +210,7 @@ def test_a_gated_spike_confirmed_by_its_held_copy_is_undone():
     # same rows in a stream that never held a position keep the update and miss by far more.
     from kftrack.adsb import from_enu
 
-    def run(hold_early):
+    def run(hold_early, spike_undo=True):
         t = np.arange(80.0)
         enu = np.column_stack([80.0 * t, 60.0 * t, np.zeros(80)])
         enu[50:53] = [80.0 * 52.5, 60.0 * 52.5, 0.0]   # the track at t = 52.5 s
@@ -219,13 +219,16 @@ def test_a_gated_spike_confirmed_by_its_held_copy_is_undone():
         lat[51:53] += np.array([1e-7, 2e-7])
         if hold_early:
             lat[10], lon[10] = lat[9], lon[9]
-        res = A.track_flight(t, lat, lon)
+        res = A.track_flight(t, lat, lon, spike_undo=spike_undo)
         truth = np.column_stack([80.0 * t, 60.0 * t])
         return res, np.hypot(*(res.enu_pred[54:60] - truth[54:60]).T)
 
     res, err = run(True)
     assert res.reason[50] == "gated"
     assert list(res.reason[51:53]) == ["repeated_position"] * 2
+    # the switch: with spike_undo=False the same stream keeps the update (the issue-26 measurement)
+    _, err_off = run(True, spike_undo=False)
+    assert err_off.max() > 10.0 * (100.0 * 4.0 * (math.radians(A.TURN_DEG_S) * 4.0) ** 2 / 6.0)
     # row 53 is predicted across the 4 s from row 49: a known-rate turn falls short by at most
     # v T (w T)^2 / 6 (the relocation test's bound) with T = 4 s, about 0.7 m; it decays after
     bias = 100.0 * 4.0 * (math.radians(A.TURN_DEG_S) * 4.0) ** 2 / 6.0

@@ -38,7 +38,8 @@ import pymap3d
 from ._validate import as_float_array, positive_scalar
 from .datasets import data_path
 
-__all__ = ["CHAPTER_FLIGHTS", "NOISY_FLIGHTS", "UNSEEN_FLIGHTS", "COLUMNS", "Flight", "load_flight",
+__all__ = ["CHAPTER_FLIGHTS", "NOISY_FLIGHTS", "UNSEEN_FLIGHTS", "TRAINING_FLIGHTS", "TEST_FLIGHTS",
+           "ROBUSTNESS_FLIGHTS", "split_of", "category_of", "refuse_test_flights", "COLUMNS", "Flight", "load_flight",
            "to_enu", "from_enu", "from_enu_horizontal"]
 
 #: Flights a chapter may look at and tune on.
@@ -58,11 +59,51 @@ UNSEEN_FLIGHTS: tuple[str, ...] = (
     "calibration/noumea", "calibration/perth", "calibration/sydney", "calibration/vancouver",
     "calibration/vienna", "gliders/alto_adige", "gliders/danube_valley", "gliders/franconia",
     "gliders/luberon", "gliders/oxford_cambridge", "gliders/sisteron")
+#: The split (issue 26; data/README.md). Training: the seven chapter flights, the only flights any
+#: constant, rule or baseline of chapter 18 is tuned on. Test: the 26 unseen flights, on which the
+#: methods are judged and nothing is tuned. Robustness: the five noisy flights, for "never fails"
+#: checks (finite, causal, plausible), not for scores. No flight moves between sets.
+TRAINING_FLIGHTS: tuple[str, ...] = CHAPTER_FLIGHTS
+TEST_FLIGHTS: tuple[str, ...] = UNSEEN_FLIGHTS
+ROBUSTNESS_FLIGHTS: tuple[str, ...] = NOISY_FLIGHTS
 #: Column names of a flight file, in order.
 COLUMNS: tuple[str, ...] = ("t_s", "lat_deg", "lon_deg", "alt_m", "groundspeed_mps", "track_deg",
                             "vertical_rate_mps")
 
 _ALL = CHAPTER_FLIGHTS + NOISY_FLIGHTS + UNSEEN_FLIGHTS
+
+
+def split_of(name: str) -> str | None:
+    """``"training"``, ``"test"`` or ``"robustness"`` for a bundled flight name; None for any other name
+    (a user's file)."""
+    if not isinstance(name, str):
+        raise TypeError(f"name must be a flight name (str), got {type(name).__name__}")
+    for label, names in (("training", TRAINING_FLIGHTS), ("test", TEST_FLIGHTS), ("robustness", ROBUSTNESS_FLIGHTS)):
+        if name in names:
+            return label
+    return None
+
+
+def category_of(name: str) -> str:
+    """The group of a bundled flight (``"calibration"``, ``"gliders"``, ``"featured"``, ``"noisy"``),
+    ``"user"`` for any other name (a user's file)."""
+    if not isinstance(name, str):
+        raise TypeError(f"name must be a flight name (str), got {type(name).__name__}")
+    return name.split("/")[0] if name in _ALL else "user"
+
+
+def refuse_test_flights(flights, argname: str = "flights") -> None:
+    """Raise ValueError if any record of ``flights`` is a test flight (its ``name`` in :data:`TEST_FLIGHTS`).
+
+    Every tuning function of chapter 18 calls this at its boundary, so that nothing is fitted,
+    scanned or chosen on the flights the methods are judged on. Records without a ``name`` (arrays
+    wrapped by a user) pass.
+    """
+    bad = [str(getattr(fl, "name", None)) for fl in flights
+           if isinstance(getattr(fl, "name", None), str) and fl.name in TEST_FLIGHTS]
+    if bad:
+        raise ValueError(f"{argname} must not hold test flights (kftrack.adsb.TEST_FLIGHTS: nothing is tuned on "
+                         f"them), got {', '.join(bad)}")
 
 
 class Flight(NamedTuple):
