@@ -34,8 +34,9 @@ book: $(STAMP)
 	$(RUN) $(BIN)/jupyter-book build . -W -n --keep-going
 	@echo "Open $(CURDIR)/_build/html/index.html"
 
+# unit tests and the Examples sections of the package docstrings (doctests)
 unit: $(STAMP)
-	$(RUN) $(BIN)/python -m pytest -q tests --ignore=tests/book
+	$(RUN) $(BIN)/python -m pytest -q tests --ignore=tests/book --doctest-modules src/kftrack
 
 nbval: $(STAMP)
 	$(RUN) $(BIN)/python -m pytest -q $(NBVAL) notebooks

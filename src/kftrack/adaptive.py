@@ -87,6 +87,17 @@ def detect_manoeuvre(nis, dof: int, window: int = 5, confidence: float = 0.99) -
     -------
     NISDetection
         ``(statistic, threshold, detected)``, each ``(T, ...)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.adaptive import detect_manoeuvre
+    >>> nis = np.r_[np.ones(20), np.full(5, 30.0)]     # NIS of a 1-D measurement; a manoeuvre from step 20
+    >>> det = detect_manoeuvre(nis, dof=1, window=3, confidence=0.99)
+    >>> np.nonzero(det.detected)[0]
+    array([20, 21, 22, 23, 24])
+    >>> print(np.round(det.threshold[-1], 4))         # chi-square(3) quantile at 0.99
+    11.3449
     """
     window, confidence, dof = _check_window(window, confidence, dof)
     v = as_float_array(nis, "nis")

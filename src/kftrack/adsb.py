@@ -225,6 +225,23 @@ def load_flight(name: str | os.PathLike) -> Flight:
         ``.gz`` file is not gzip, is corrupt, or is truncated (no partial flight is returned).
     FileNotFoundError
         If a user's path does not exist.
+
+    Examples
+    --------
+    >>> from kftrack.adsb import CHAPTER_FLIGHTS, load_flight
+    >>> flight = load_flight("calibration/toulouse")   # a bundled flight (CHAPTER_FLIGHTS, ...)
+    >>> flight.t_s.shape, flight.lat_deg.shape, flight.skipped
+    ((2492,), (2492,), {})
+    >>> import pathlib, tempfile                       # a file of your own, in the same format
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "mine.csv"
+    >>> with open(path, "w") as f:
+    ...     print("t_s,lat_deg,lon_deg,alt_m,groundspeed_mps,track_deg,vertical_rate_mps", file=f)
+    ...     print("0,52.0,4.00,1000,100,90,0", file=f)
+    ...     print("5,52.0,4.01,1000,100,90,0", file=f)
+    ...     print("10,95.0,4.02,1000,100,90,0", file=f)   # latitude 95: a bad row
+    >>> mine = load_flight(path)
+    >>> mine.t_s.tolist(), mine.skipped                # a bad row is skipped and counted, never fatal
+    ([0.0, 5.0], {'latitude outside [-90, 90]': 1})
     """
     name, path, gzipped = _flight_file(name)
     rows: list[tuple[float, ...]] = []

@@ -379,6 +379,18 @@ def pdaf_update(x, P, Z, H, R, *, P_D: float, P_G: float, clutter_density=None, 
     PDAUpdate
         With :math:`\lambda \to 0` and ``P_D = 1`` a single gated measurement gives exactly the
         Kalman update of :func:`kftrack.kalman.update`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.association import pdaf_update
+    >>> x, P, H, R = np.array([0.0, 1.0]), np.eye(2), np.array([[1.0, 0.0]]), np.eye(1)
+    >>> Z = np.array([[0.5], [3.0], [-0.2]])          # one scan: three measurements, at most one the target's
+    >>> u = pdaf_update(x, P, Z, H, R, P_D=0.9, P_G=0.99, clutter_density=0.1)
+    >>> print(np.round(u.beta, 3))                    # [none is the target's, measurement 0, 1, 2]
+    [0.021 0.452 0.051 0.476]
+    >>> print(np.round(u.x, 4))
+    [0.1415 1.    ]
     """
     P_D, P_G, lam = _check_prob_detect(P_D), _check_prob_gate(P_G), _check_density(clutter_density)
     x, P, Z, mask, H, R = _check_filter_args(x, P, Z, mask, H, R)
@@ -703,6 +715,13 @@ def gospa(truth, estimate, *, c: float, p: float = 2.0) -> GOSPA:
     ----------
     truth : (N, d) true points; ``estimate`` (M, d) estimated points (either may be empty).
     c : cut-off distance; ``p`` the order (>= 1).
+
+    Examples
+    --------
+    >>> from kftrack.association import gospa
+    >>> g = gospa([[0.0, 0.0], [10.0, 0.0]], [[0.0, 1.0]], c=5.0, p=2.0)   # one target found 1 m off, one missed
+    >>> round(g.distance, 6), g.localisation, g.missed, g.false       # sqrt(1 + 5²/2)
+    (3.674235, 1.0, 1, 0)
     """
     X, Y = _check_sets(truth, estimate, c, p)
     N, M = len(X), len(Y)

@@ -83,6 +83,14 @@ def tilt_from_accel(a, wide: bool = False) -> tuple[np.ndarray, np.ndarray]:
 
     With ``wide=True`` roll uses ``arctan2(-a_y, -a_z)``, valid over (-180°, 180°].
     Independent of the unit of ``a`` (ratios). ``a`` has shape ``(..., 3)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.attitude import accel_from_tilt, tilt_from_accel
+    >>> a = accel_from_tilt(pitch=0.1, roll=-0.2)     # specific force at rest (m/s²)
+    >>> print(np.round(tilt_from_accel(a), 6))        # pitch and roll back (rad)
+    [ 0.1 -0.2]
     """
     a = as_vector(a, "a", 3)
     ax, ay, az = a[..., 0], a[..., 1], a[..., 2]

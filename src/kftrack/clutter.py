@@ -58,6 +58,18 @@ def simulate_scans(z_true, *, P_D: float, clutter_density: float, region, rng: n
     Returns
     -------
     Scans
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.clutter import simulate_scans
+    >>> z_true = np.zeros((100, 2))                   # 100 scans of a target at the origin
+    >>> scans = simulate_scans(z_true, P_D=0.9, clutter_density=0.01, region=([-10.0, -10.0], [10.0, 10.0]),
+    ...                        rng=np.random.default_rng(0))   # lambda V = 0.01 * 400 = 4 false alarms a scan
+    >>> scans.Z.shape[0], scans.Z.shape[-1], scans.mask.shape == scans.Z.shape[:2], scans.detected.shape
+    (100, 2, True, (100, 1))
+    >>> int(scans.detected.sum()), int((scans.mask & (scans.origin == 0)).sum())   # scans holding the target
+    (96, 96)
     """
     rng = check_rng(rng)
     z_true = as_vector(z_true, "z_true")

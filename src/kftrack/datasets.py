@@ -35,7 +35,16 @@ def data_dir() -> Path:
 
 
 def data_path(name: str) -> Path:
-    """Path of the data file ``name`` inside :func:`data_dir`; raises if it is missing."""
+    """Path of the data file ``name`` inside :func:`data_dir`; raises if it is missing.
+
+    Examples
+    --------
+    >>> from kftrack.datasets import data_files, data_path
+    >>> data_path("adsb/calibration/toulouse.csv.gz").name   # wherever the package is installed
+    'toulouse.csv.gz'
+    >>> "gps_track" in {name.split("/")[0] for name in data_files()}
+    True
+    """
     folder = data_dir()
     path = folder / name
     if not path.exists():

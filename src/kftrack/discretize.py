@@ -30,6 +30,19 @@ def van_loan(A, G, Qc, dt: float) -> tuple[np.ndarray, np.ndarray]:
     Returns
     -------
     F, Q : (n, n) each.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.discretize import van_loan
+    >>> A = np.array([[0.0, 1.0], [0.0, 0.0]])        # x' = v, v' = w: constant velocity
+    >>> F, Q = van_loan(A, G=[[0.0], [1.0]], Qc=[[1.0]], dt=1.0)
+    >>> print(np.round(F, 6) + 0.0)
+    [[1. 1.]
+     [0. 1.]]
+    >>> print(np.round(Q, 6) + 0.0)                   # q [[T³/3, T²/2], [T²/2, T]]
+    [[0.333333 0.5     ]
+     [0.5      1.      ]]
     """
     A = as_matrix(A, "A")
     n = A.shape[-1]

@@ -205,6 +205,23 @@ def extended_kalman_filter(zs, x0, P0, f: Vector, F_jac: Vector, Q, h: Vector | 
     Returns
     -------
     kftrack.kalman.FilterResult
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.ekf import extended_kalman_filter
+    >>> from kftrack.models import ConstantVelocity
+    >>> from kftrack.sensors.radar import RangeBearing
+    >>> cv, radar = ConstantVelocity(ndim=2, q=0.01), RangeBearing(sigmas=(1.0, 0.01))   # m, rad
+    >>> truth = np.array([[100.0 + 5.0 * k, 5.0, 50.0, 0.0] for k in range(20)])   # [x, vx, y, vy]
+    >>> zs = radar.h(truth) + np.random.default_rng(0).normal(size=(20, 2)) * radar.sigmas   # range, bearing
+    >>> x0, P0 = np.array([100.0, 0.0, 50.0, 0.0]), np.diag([25.0, 100.0, 25.0, 100.0])
+    >>> res = extended_kalman_filter(zs, x0, P0, lambda x: cv.f(x, 1.0), lambda x: cv.jacobian(x, 1.0), cv.Q(1.0),
+    ...                              radar.h, radar.jacobian, radar.R, angle_components=[1])
+    >>> res.x.shape, res.P.shape
+    ((20, 4), (20, 4, 4))
+    >>> print(np.round(res.x[-1], 1).tolist())        # the truth is [195, 5, 50, 0]
+    [194.8, 5.1, 50.9, 0.1]
     """
     sources = (zs, x0, P0, Q, R)  # the caller's arrays choose the engine
     Q_fn = Q if callable(Q) else None

@@ -113,7 +113,17 @@ def check_dts(dt, T: int, times=None) -> np.ndarray:
       ``dt = np.diff(times)`` as above.
 
     A ``ValueError`` (``TypeError`` for non-numbers) names the argument and gives the shape
-    received, not the values."""
+    received, not the values.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.engines import check_dts
+    >>> check_dts(0.5, T=3)                           # one interval after each of T steps
+    array([0.5, 0.5, 0.5])
+    >>> check_dts(None, T=3, times=[0.0, 1.0, 3.0])   # from timestamps; the unused last copies the one before
+    array([1., 2., 2.])
+    """
     if times is not None:
         if dt is not None:
             raise ValueError("dt and times exclude each other: give the intervals dt (s) or the timestamps "

@@ -105,6 +105,15 @@ def curvature_torsion(v, a, jerk=None) -> tuple[np.ndarray, np.ndarray | None]:
     (1/m); ``v``, ``a``, ``jerk`` are ``(..., 3)``. The torsion is NaN where the motion is
     straight (:math:`\mathbf v\times\mathbf a = 0`); ``None`` when no ``jerk`` is given.
     A zero velocity (no direction, no curvature) is refused.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.frenet import curvature_torsion
+    >>> # the helix (cos t, sin t, t) at t = 0: curvature and torsion 1 / (1 + 1) = 0.5 (1/m)
+    >>> kappa, tau = curvature_torsion(v=[0.0, 1.0, 1.0], a=[-1.0, 0.0, 0.0], jerk=[0.0, -1.0, 0.0])
+    >>> print(np.round([kappa, tau], 6))
+    [0.5 0.5]
     """
     v = as_vector(v, "v", 3)
     a = as_vector(a, "a", 3)
@@ -445,6 +454,18 @@ def simulate(segments: Sequence[Segment], dt: float, r0=(0.0, 0.0, 0.0), v0=(1.0
     Returns
     -------
     FrenetTrack with samples at ``t = 0, dt, 2dt, ...`` up to the end of the last segment.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.frenet import Segment, simulate
+    >>> circle = [Segment(length=2 * np.pi * 10.0, kappa=0.1)]     # one turn of radius 10 m
+    >>> track = simulate(circle, dt=np.pi / 2, v0=(1.0, 0.0, 0.0))  # at 1 m/s: 40 steps
+    >>> track.t.shape, track.r.shape, track.frame.shape
+    ((41,), (41, 3), (41, 3, 3))
+    >>> print(np.round(track.r[[10, 40]], 6) + 0.0)               # a quarter turn, then closed exactly
+    [[10. 10.  0.]
+     [ 0.  0.  0.]]
     """
     segs = _check_segments(segments)
     d = positive_scalar(dt, "dt", "s")

@@ -128,6 +128,13 @@ def gaussian_pdf(x, mean, var) -> np.ndarray:
     r"""Density of the 1-D Gaussian :math:`\mathcal N(x; \mu, \sigma^2)`.
 
     ``var`` is the variance :math:`\sigma^2 > 0`; ``x``, ``mean`` and ``var`` broadcast.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.gaussians import gaussian_pdf
+    >>> print(np.round(gaussian_pdf([0.0, 1.0, 2.0], 0.0, 4.0), 6))   # N(x; 0, 4): var, not sigma
+    [0.199471 0.176033 0.120985]
     """
     return np.exp(gaussian_logpdf(x, mean, var))
 
@@ -179,6 +186,14 @@ def multiply_gaussians(mean1, var1, mean2, var2) -> GaussianProduct:
     -------
     GaussianProduct
         ``(mean, var, scale, log_scale)`` with ``scale = N(mean1; mean2, var1 + var2)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.gaussians import multiply_gaussians
+    >>> p = multiply_gaussians(0.0, 4.0, 10.0, 1.0)   # N(0, 4) times N(10, 1)
+    >>> print(np.round([p.mean, p.var], 6))           # pulled towards the narrower one
+    [8.  0.8]
     """
     mean1 = check_finite(as_float_array(mean1, "mean1"), "mean1")
     mean2 = check_finite(as_float_array(mean2, "mean2"), "mean2")
@@ -259,6 +274,14 @@ def update_1d(x, P, z, R) -> Update:
     -------
     kftrack.kalman.Update
         ``(x, P, y, S, K, nis, loglik)`` with scalar (batch-shaped) fields.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.gaussians import update_1d
+    >>> u = update_1d(0.0, 4.0, 10.0, 1.0)            # prior N(0, 4), measurement 10 with variance 1
+    >>> print(np.round([u.x, u.P, u.K, u.nis], 6))    # the same numbers as multiply_gaussians
+    [ 8.   0.8  0.8 20. ]
     """
     x = check_finite(as_float_array(x, "x"), "x")
     P = _nonnegative(P, "P")
@@ -293,6 +316,17 @@ def moment_test(sample, mean: float, var: float, confidence: float = 0.95) -> Mo
     sample : (n,) finite values, ``n >= 2``.
     mean, var : the model mean and variance (``var > 0``).
     confidence : probability of each acceptance interval, in (0, 1).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.gaussians import moment_test
+    >>> rng = np.random.default_rng(0)
+    >>> t = moment_test(rng.normal(1.0, 2.0, 500), mean=1.0, var=4.0)
+    >>> t.n, bool(t.mean_ok), bool(t.var_ok)
+    (500, True, True)
+    >>> bool(moment_test(rng.normal(1.0, 3.0, 500), mean=1.0, var=4.0).var_ok)   # variance 9, not 4
+    False
     """
     x = as_vector(sample, "sample")
     if x.ndim != 1 or x.size < 2:
@@ -322,6 +356,13 @@ def mahalanobis2(x, mean, cov) -> np.ndarray:
     ``x`` and ``mean`` have shape ``(..., n)``, ``cov`` ``(..., n, n)`` (symmetric positive
     definite); broadcasts, returns shape ``(...)``. If :math:`x \sim \mathcal N(\mu, \Sigma)`
     then :math:`d^2 \sim \chi^2_n`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.gaussians import mahalanobis2
+    >>> print(np.round(mahalanobis2([1.0, 2.0], [0.0, 0.0], np.diag([1.0, 4.0])), 6))
+    2.0
     """
     x = as_vector(x, "x")
     mean = as_vector(mean, "mean", x.shape[-1])
@@ -338,6 +379,13 @@ def ellipse_mass(nsigma, dim: int = 2) -> np.ndarray:
 
     In one dimension this is the familiar 68 / 95.4 / 99.7 % of ±1, 2, 3 σ; in two dimensions
     it is :math:`1 - e^{-n_\sigma^2/2}`, only 86.5 % for the 2σ ellipse.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.gaussians import ellipse_mass
+    >>> print(np.round(ellipse_mass([1, 2, 3], dim=2), 6))   # probability inside the 1, 2, 3 sigma ellipses
+    [0.393469 0.864665 0.988891]
     """
     k = as_float_array(nsigma, "nsigma")
     if np.any(~(k >= 0)):

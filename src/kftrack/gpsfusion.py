@@ -120,6 +120,18 @@ def speed_heading_filter(zs, x0, P0, Q, R, dt: float = 1.0, *, jacobian: bool = 
     dt : sampling interval (s).
     jacobian : False propagates P with the thesis's :math:`A_k` (not a Jacobian, the thesis's
         "EKF"); True with the true Jacobian (:func:`speed_heading_jacobian`), an EKF.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.gpsfusion import speed_heading_filter
+    >>> t = np.arange(30.0)
+    >>> truth = np.stack([2.0 * t, np.zeros(30), np.full(30, 2.0), np.zeros(30)], axis=-1)   # [x, y, v, h]: east at 2 m/s
+    >>> sd = np.array([1.0, 1.0, 0.1, 0.05, 2.0, 2.0, 0.2, 0.1])    # two receivers, the second twice as noisy
+    >>> zs = np.tile(truth, 2) + np.random.default_rng(0).normal(size=(30, 8)) * sd   # stacked [x1, y1, v1, h1, x2, ...]
+    >>> res = speed_heading_filter(zs, truth[0], np.eye(4), 0.01 * np.eye(4), np.diag(sd ** 2))
+    >>> res.x.shape, res.P.shape
+    ((30, 4), (30, 4, 4))
     """
     zs = as_vector(zs, "zs")
     if zs.ndim < 2 or zs.shape[-1] % 4:
@@ -155,7 +167,17 @@ def speed_heading_filter(zs, x0, P0, Q, R, dt: float = 1.0, *, jacobian: bool = 
 def fusion_weights(C) -> np.ndarray:
     r"""Minimum-variance weights for averaging ``r`` unbiased measurements of one quantity whose
     errors have covariance ``C`` ``(r, r)``: :math:`w = C^{-1}\mathbf 1 / (\mathbf 1^\top C^{-1}\mathbf 1)`,
-    variance :math:`1/(\mathbf 1^\top C^{-1}\mathbf 1)`. Returns ``w`` ``(r,)`` (sums to one)."""
+    variance :math:`1/(\mathbf 1^\top C^{-1}\mathbf 1)`. Returns ``w`` ``(r,)`` (sums to one).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.gpsfusion import fusion_weights
+    >>> print(np.round(fusion_weights(np.diag([1.0, 4.0])), 6))   # inverse-variance weights
+    [0.8 0.2]
+    >>> print(np.round(fusion_weights([[1.0, 0.5], [0.5, 4.0]]), 6))   # correlated errors
+    [0.875 0.125]
+    """
     C = check_covariance(C, "C", positive_definite=True)
     if C.ndim != 2:
         raise ValueError(f"C must have shape (r, r), got shape {C.shape}")

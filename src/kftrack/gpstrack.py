@@ -338,6 +338,15 @@ def load_track_logs(directory=None, receivers=RECEIVERS, speed: float = WALK_SPE
     Returns ``(TrackRuns, {receiver name: SkipReport})``; the measurements are projected to the
     local East-North frame about :data:`TRACK_ORIGIN` (:func:`kftrack.sensors.gps.geodetic_to_enu`),
     speed in m/s and heading in the book's convention. An epoch missing from a log is a row of NaN.
+
+    Examples
+    --------
+    >>> from kftrack.gpstrack import load_track_logs
+    >>> runs, reports = load_track_logs()              # the two receivers' NMEA logs of data/gps_track/
+    >>> runs.receivers, runs.inner.shape               # (runs, epochs of a lap, receivers, [x, y, v, h])
+    (('MAX-8', 'NEO-6'), (20, 267, 2, 4))
+    >>> sorted(reports)                                # one SkipReport per receiver
+    ['MAX-8', 'NEO-6']
     """
     folder = _directory(directory)
     truth_in = lap_truth(INNER_RADIUS, speed)

@@ -54,18 +54,19 @@ import numpy as np
 import scipy.linalg
 from array_api_compat import array_namespace
 
-from ._validate import as_float_array, as_vector, broadcast_batch, check_angles, check_covariance, check_finite
+from ._validate import as_float_array, as_matrix, as_vector, broadcast_batch, check_angles, check_covariance
+from ._validate import check_finite, check_missing, check_state, is_tracer, stand_in
 from .kernels import Update, ekf_predict, ekf_update, kf_predict, kf_update, logsumexp, mixing_log_weights, moment_match
 from .kernels import rts_step, ukf_predict, ukf_update
 from .kernels import residual, unscented, wrap_state
-from .engines import PerDt, check_dts, choose_engine, run_imm_scan, to_engine
+from .engines import PerDt, check_dtype, check_dts, choose_engine, run_imm_scan, to_engine
 from .ukf import Points, check_points
 
 __all__ = [
     "Mode", "KalmanMode", "EKFMode", "UKFMode", "IMMState", "IMMResult", "IMM", "GPB1",
     "sojourn_generator", "sojourn_transition", "first_order_transition", "SojournTransition",
     "check_transition", "stationary_distribution", "mix_gaussians", "imm_filter", "clairvoyant_filter",
-    "IMMSmootherResult", "imm_smoother",
+    "IMMSmootherResult", "imm_smoother", "IMMParams", "imm_loglik", "imm_params",
 ]
 
 _TOL = 1e-9  # tolerance on sums of probabilities
@@ -802,6 +803,22 @@ def imm_filter(estimator: IMM, zs, x0, P0, dt=None, mu0=None, *, times=None, pro
         resolves them more coarsely than the measurement noise, or that their squares overflow,
         beyond about 1.3e154), otherwise naming the step. The JAX engine does not check: NaN or inf
         propagate to the outputs.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.imm import IMM, KalmanMode, imm_filter
+    >>> from kftrack.models import ConstantVelocity
+    >>> R = np.eye(1)
+    >>> bank = IMM([KalmanMode(ConstantVelocity(ndim=1, q=0.01), R),     # quiet
+    ...             KalmanMode(ConstantVelocity(ndim=1, q=10.0), R)],    # agile
+    ...            transition=[[0.95, 0.05], [0.05, 0.95]], mu0=[0.5, 0.5])
+    >>> zs = np.array([[0.0], [1.0], [2.1], [2.9], [np.nan], [8.0], [12.5], [17.0]])   # speeds up; one missing
+    >>> out = imm_filter(bank, zs, np.zeros(2), 10 * np.eye(2), dt=1.0)
+    >>> out.x.shape, out.mu.shape                    # combined state [x, vx], mode probabilities
+    ((8, 2), (8, 2))
+    >>> bool(out.mu[3, 1] < 0.5 < out.mu[-1, 1])     # the agile mode takes over after the speed-up
+    True
     """
     jax_engine, dtype = choose_engine(zs, x0, P0, mu0, dtype=dtype)
     zs, row_missing = _check_zs(zs)
@@ -897,6 +914,165 @@ def _imm_filter_jax(estimator: IMM, zs, row_missing, x0, P0, mu0, dts, batch, dt
     gone = np.broadcast_to(row_missing, (zs.shape[0],) + batch)
     args = [to_engine(a, True, dtype) for a in (zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R)]
     return IMMResult(*run_imm_scan(*args, batch=batch, mixing_weights=estimator._mixing_weights))
+
+
+# --------------------------------------------------------------------------------------------
+# a pure entry point for jax.jit, jax.vmap and jax.grad
+# --------------------------------------------------------------------------------------------
+class IMMParams(NamedTuple):
+    r"""The parameters of a linear IMM (full-state :class:`KalmanMode` bank, constant sampling
+    interval) as arrays, for :func:`imm_loglik`: one pytree, so ``jax.grad`` and ``jax.vmap``
+    over any of them are natural.
+
+    Attributes
+    ----------
+    F, Q : (r, n, n) transition matrix and process-noise covariance of each mode (per step).
+    H : (r, m, n) per mode, or (m, n) shared.
+    R : (r, m, m) per mode, or (m, m) shared.
+    logits : (r, r) Markov matrix by rows, :math:`\Pi_{ij} = e^{L_{ij}} / \sum_l e^{L_{il}}`
+        (any real ``L`` gives a stochastic matrix, so a gradient step stays on the simplex;
+        ``-inf`` is a zero probability).
+    log_mu0 : (r,) initial mode probabilities, :math:`\mu_{0,j} \propto e^{\lambda_j}` (the logs
+        of probabilities are left unchanged; finite for a finite gradient).
+    """
+
+    F: np.ndarray
+    Q: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    logits: np.ndarray
+    log_mu0: np.ndarray
+
+
+def _check_imm_params(params, n: int, m: int) -> int:
+    """Shapes of :class:`IMMParams` (values too when concrete; abstract values are checked
+    through :func:`kftrack._validate.stand_in`); returns ``r``."""
+    if not isinstance(params, IMMParams):
+        raise TypeError(f"params must be an IMMParams, got {type(params).__name__}")
+    logits = as_float_array(stand_in(params.logits, "matrix"), "params.logits")
+    if logits.ndim != 2 or logits.shape[0] != logits.shape[1] or logits.shape[0] == 0:
+        raise ValueError(f"params.logits must have shape (r, r) (one row of the Markov matrix per mode), got shape "
+                         f"{logits.shape}")
+    r = logits.shape[0]
+    log_mu0 = as_float_array(stand_in(params.log_mu0, "vector"), "params.log_mu0")
+    if log_mu0.shape != (r,):
+        raise ValueError(f"params.log_mu0 must have shape ({r},) (r = {r} from params.logits), got shape "
+                         f"{log_mu0.shape}")
+    for name, a in (("params.logits", logits), ("params.log_mu0", log_mu0)):
+        if np.isnan(a).any() or np.isposinf(a).any() or np.isneginf(a).all(-1).any():
+            raise ValueError(f"{name} must be real logits (no NaN or +inf, not all -inf in a row), got shape "
+                             f"{a.shape} with such values")
+    origin = f"r = {r} from params.logits, n = {n} from x0"
+    F = as_matrix(stand_in(params.F, "matrix"), "params.F", n, n, origin=origin)
+    Q = check_covariance(stand_in(params.Q, "cov"), "params.Q", n, origin=origin)
+    H = as_matrix(stand_in(params.H, "matrix"), "params.H", m, n, origin=f"m = {m} from zs, n = {n} from x0")
+    R = check_covariance(stand_in(params.R, "cov"), "params.R", m, positive_definite=True, origin=f"m = {m} from zs")
+    for name, a, shared in (("F", F, False), ("Q", Q, False), ("H", H, True), ("R", R, True)):
+        if a.shape[:-2] != (r,) and not (shared and a.ndim == 2):
+            alt = f" or {a.shape[-2:]} (shared by the modes)" if shared else ""
+            raise ValueError(f"params.{name} must have shape ({r}, {a.shape[-2]}, {a.shape[-1]}) (one per mode, "
+                             f"r = {r} from params.logits){alt}, got shape {a.shape}")
+    return r
+
+
+def _imm_mixing_weights(log_mu, Pi):
+    """The IMM's mixing weights ``mu_{i|j}`` and ``log cbar_j`` (:meth:`IMM._mixing_weights`)."""
+    logw, log_cbar = mixing_log_weights(log_mu, Pi)
+    return array_namespace(logw).exp(logw), log_cbar
+
+
+def imm_loglik(params: IMMParams, zs, x0, P0, *, missing=None, dtype=None) -> tuple:
+    r"""The IMM filter of a linear mode bank as a pure function of its parameters, for
+    ``jax.jit``, ``jax.vmap`` and ``jax.grad``: the same cycle as :func:`imm_filter` on the JAX
+    engine (:func:`kftrack.engines.run_imm_scan`), from arrays alone, and its log-likelihood
+
+    .. math:: \ell = \sum_{k\ \text{measured}} \log \sum_j \bar c_{k,j}\, \Lambda_{k,j},
+              \qquad \Lambda_{k,j} = N(\nu_{k,j}; 0, S_{k,j}),
+
+    :math:`\bar c_{k,j}` the predicted mode probabilities (``mu_prior``) and
+    :math:`\Lambda_{k,j}` the mode likelihoods (``loglik``) of step ``k``: the log density of
+    the measurements under the IMM's Gaussian-mixture predictions.
+
+    Parameters
+    ----------
+    params : :class:`IMMParams` (r modes; shapes checked, values too when concrete).
+    zs : (T, ..., m) measurements, time first; NaN rows are missing.
+    x0, P0 : (..., n), (..., n, n) prior of step 0 (every mode starts from it).
+    missing : None (the NaN rows of ``zs``, found inside the trace when ``zs`` is abstract),
+        ``False`` (none missing) or a concrete boolean ``(T,)``/``(T, ...)`` mask, as in
+        :func:`kftrack.kalman.kalman_filter`.
+    dtype : None or ``"float64"`` (needs ``jax_enable_x64``), or ``"float32"``.
+
+    Returns
+    -------
+    (ell, IMMResult)
+        ``ell`` (...) the log-likelihood of each run, and the filtered sequence (JAX arrays):
+        ``jax.grad(imm_loglik, has_aux=True)`` differentiates ``ell`` (sum it first when runs are
+        batched). :func:`imm_params` builds ``params`` from an :class:`IMM` of :class:`KalmanMode`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.imm import IMMParams, imm_loglik
+    >>> F = np.stack([np.eye(2) + np.eye(2, k=1)] * 2)             # two constant-velocity modes
+    >>> Q = np.stack([0.01 * np.eye(2), 1.0 * np.eye(2)])          # quiet and manoeuvring
+    >>> p = IMMParams(F, Q, np.array([[1.0, 0.0]]), np.eye(1), np.log([[0.9, 0.1], [0.1, 0.9]]), np.zeros(2))
+    >>> zs = np.arange(10.0)[:, None]                                # (T, m) = (10, 1)
+    >>> ell, res = imm_loglik(p, zs, np.zeros(2), 10 * np.eye(2), dtype="float32")
+    >>> res.mu.shape, bool(np.isfinite(ell))
+    ((10, 2), True)
+
+    ``jax.grad(lambda p: imm_loglik(p, zs, x0, P0)[0])(p)`` is an :class:`IMMParams` of
+    gradients (``.logits`` ``(2, 2)``: :math:`\partial\ell/\partial L`); ``tests/test_compose_imm.py``
+    checks it against central differences.
+    """
+    import jax  # the entry point is JAX's
+
+    jnp = jax.numpy
+    dtype = check_dtype(dtype, True)
+    zs_c, pattern = check_missing(zs, missing)
+    x0_c, P0_c, n = check_state(stand_in(x0, "vector"), stand_in(P0, "cov"), ("x0", "P0"))
+    T, m = zs_c.shape[0], zs_c.shape[-1]
+    r = _check_imm_params(params, n, m)
+    batch = broadcast_batch({"zs[k]": zs_c.shape[1:-1], "x0": x0_c.shape[:-1], "P0": P0_c.shape[:-2]})
+    zs = to_engine(zs if is_tracer(zs) else zs_c, True, dtype)
+    gone = (jnp.isnan(zs).all(-1) if pattern is None else jnp.asarray(pattern))
+    gone = jnp.broadcast_to(gone.reshape((T,) + (1,) * (1 + len(batch) - gone.ndim) + gone.shape[1:]), (T,) + batch)
+    zs = jnp.where(gone[..., None], jnp.zeros((), zs.dtype), zs)  # no NaN enters the arithmetic (nor its gradient)
+    F, Q, H, R, logits, log_mu0, x0, P0 = (to_engine(a, True, dtype) for a in
+                                           (*params[:4], params.logits, params.log_mu0, x0, P0))
+    log_Pi = jax.nn.log_softmax(logits, axis=-1)
+    log_mu0 = jax.nn.log_softmax(log_mu0)
+    out = run_imm_scan(zs, gone, jnp.broadcast_to(log_mu0, batch + (r,)), jnp.broadcast_to(x0, (r,) + batch + (n,)),
+                       jnp.broadcast_to(P0, (r,) + batch + (n, n)), jnp.broadcast_to(jnp.exp(log_Pi), (T, r, r)),
+                       jnp.broadcast_to(F, (T, r, n, n)), jnp.broadcast_to(Q, (T, r, n, n)),
+                       jnp.broadcast_to(H, (r, m, n)), jnp.broadcast_to(R, (r, m, m)), batch=batch,
+                       mixing_weights=_imm_mixing_weights)
+    res = IMMResult(*out)
+    g = gone[..., None]
+    step = logsumexp(jnp.log(res.mu_prior) + jnp.where(g, jnp.zeros((), dtype), res.loglik), axis=-1)
+    return jnp.sum(jnp.where(gone, jnp.zeros((), dtype), step), axis=0), res
+
+
+def imm_params(estimator: IMM, dt: float) -> IMMParams:
+    """:class:`IMMParams` of an :class:`IMM` of full-state :class:`KalmanMode` at a constant
+    sampling interval ``dt`` (s): ``F(dt)``, ``Q(dt)``, ``H``, ``R`` of each mode, ``logits =
+    log Pi(dt)`` and ``log_mu0 = log mu0`` (``-inf`` for a zero probability), NumPy arrays."""
+    if not isinstance(estimator, IMM) or isinstance(estimator, GPB1):
+        raise TypeError(f"estimator must be an IMM (imm_loglik runs the IMM's mixing), got "
+                        f"{type(estimator).__name__}")
+    modes, N = estimator.modes, estimator.N
+    if not all(isinstance(m, KalmanMode) for m in modes) or any(c != tuple(range(N)) for c in estimator.components):
+        raise TypeError(f"estimator must be a bank of KalmanMode that all hold the whole state (N = {N}), got "
+                        f"modes {[type(m).__name__ for m in modes]} with components {estimator.components}")
+    d = float(check_finite(as_float_array(dt, "dt"), "dt")) if np.ndim(dt) == 0 else None
+    if d is None or d < 0:
+        got = f"shape {np.shape(dt)}" if d is None else f"{d:g}"
+        raise ValueError(f"dt must be a scalar interval >= 0 (s), got {got}")
+    FQ = [m._FQ(d) for m in modes]
+    with np.errstate(divide="ignore"):
+        return IMMParams(np.stack([f for f, _ in FQ]), np.stack([q for _, q in FQ]), np.stack([m.H for m in modes]),
+                         np.stack([m.R for m in modes]), np.log(estimator.transition(d)), np.log(estimator.mu0))
 
 
 def clairvoyant_filter(modes: Sequence, mode_sequence, zs, x0, P0, dt) -> tuple[np.ndarray, np.ndarray]:
@@ -1144,6 +1320,21 @@ def imm_smoother(estimator: IMM, result: IMMResult, dt=None, *, times=None) -> I
     (1994) 1–22. C.-J. Kim and C. R. Nelson, *State-Space Models with Regime Switching*, MIT
     Press 1999, §5.2. S. Särkkä, "Unscented Rauch–Tung–Striebel smoother", *IEEE Transactions
     on Automatic Control* 53 (2008) 845–849.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.imm import IMM, KalmanMode, imm_filter, imm_smoother
+    >>> from kftrack.models import ConstantVelocity
+    >>> R = np.eye(1)
+    >>> bank = IMM([KalmanMode(ConstantVelocity(ndim=1, q=0.01), R), KalmanMode(ConstantVelocity(ndim=1, q=10.0), R)],
+    ...            transition=[[0.95, 0.05], [0.05, 0.95]], mu0=[0.5, 0.5])
+    >>> zs = np.array([[0.0], [1.0], [2.1], [2.9], [np.nan], [8.0], [12.5], [17.0]])
+    >>> back = imm_smoother(bank, imm_filter(bank, zs, np.zeros(2), 10 * np.eye(2), dt=1.0), dt=1.0)
+    >>> back.x.shape, back.mu.shape
+    ((8, 2), (8, 2))
+    >>> bool(np.allclose(back.mu.sum(-1), 1.0))       # smoothed mode probabilities
+    True
     """
     T, batch = _check_smoother_input(estimator, result)
     dts = _dts(dt, T, times)

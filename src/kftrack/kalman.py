@@ -63,6 +63,18 @@ def predict(x, P, F, Q) -> tuple[np.ndarray, np.ndarray]:
     ValueError, TypeError
         On bad input, naming the argument; also when the prediction overflows float64 (e.g.
         ``P = 1e308 I``), naming the input of largest magnitude.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.kalman import predict
+    >>> F = np.array([[1.0, 1.0], [0.0, 1.0]])        # constant velocity, T = 1 s; state [x, vx]
+    >>> x, P = predict(np.array([0.0, 1.0]), np.eye(2), F, 0.1 * np.eye(2))
+    >>> print(x)
+    [1. 1.]
+    >>> print(np.round(P, 6))                         # F P F^T + Q
+    [[2.1 1. ]
+     [1.  1.1]]
     """
     x, P, n = check_state(x, P)
     F = as_matrix(F, "F", n, n, origin=f"n = {n} from x")
@@ -106,6 +118,17 @@ def update(x, P, z, H, R, *, form: str = "joseph") -> Update:
         ``nis = inf`` and ``loglik = -inf``, the correctly rounded values (``x``, ``P`` are
         unaffected); a posterior ``x`` or ``P`` that overflows raises a ``ValueError`` naming
         the input of largest magnitude.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.kalman import update
+    >>> u = update(np.array([1.0, 1.0]), np.diag([2.0, 1.0]), z=np.array([1.5]), H=np.array([[1.0, 0.0]]), R=np.eye(1))
+    >>> print(np.round(u.x, 6), np.round(u.K[:, 0], 6), np.round(u.nis, 6))   # gain 2 / (2 + 1)
+    [1.333333 1.      ] [0.666667 0.      ] 0.083333
+    >>> print(np.round(u.P, 6) + 0.0)
+    [[0.666667 0.      ]
+     [0.       1.      ]]
     """
     form = check_form(form)
     x, P, n = check_state(x, P)
@@ -249,6 +272,30 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, times=None, time_varying: 
     ------
     ValueError, TypeError
         On bad input, naming the argument.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.kalman import kalman_filter
+    >>> from kftrack.models import ConstantVelocity
+    >>> cv = ConstantVelocity(ndim=1, q=0.1)          # state [x, vx]
+    >>> zs = np.array([[0.0], [1.1], [np.nan], [2.9], [4.2]])   # (T, m); a NaN row: no measurement
+    >>> res = kalman_filter(zs, np.zeros(2), 10 * np.eye(2), cv.F(1.0), cv.Q(1.0), cv.H, np.eye(1))
+    >>> res.x.shape, res.P.shape, np.isnan(res.nis).tolist()
+    ((5, 2), (5, 2, 2), [False, False, True, False, False])
+    >>> print(np.round(res.x[-1], 6))
+    [4.077435 1.02663 ]
+    >>> # irregular sampling: F and Q as functions of the interval, dt[k] from step k to k + 1
+    >>> res = kalman_filter(zs, np.zeros(2), 10 * np.eye(2), cv.F, cv.Q, cv.H, np.eye(1), dt=[1.0, 0.5, 0.5, 1.0, 1.0])
+    >>> print(np.round(res.x[-1], 6))
+    [4.17199  1.419501]
+    >>> same = kalman_filter(zs, np.zeros(2), 10 * np.eye(2), cv.F, cv.Q, cv.H, np.eye(1), times=[0.0, 1.0, 1.5, 2.0, 3.0])
+    >>> bool(np.all(same.x == res.x))                 # the timestamps instead: the same intervals
+    True
+    >>> # 1000 Monte Carlo runs in one call: a batch axis after time
+    >>> runs = np.random.default_rng(0).normal(size=(5, 1000, 1))
+    >>> kalman_filter(runs, np.zeros(2), 10 * np.eye(2), cv.F(1.0), cv.Q(1.0), cv.H, np.eye(1)).x.shape
+    (5, 1000, 2)
     """
     if not isinstance(priors, (bool, np.bool_)):
         raise TypeError(f"priors must be True or False, got {priors!r}")
@@ -313,6 +360,20 @@ def rts_smoother(result: FilterResult, F, *, dt=None, times=None, time_varying: 
     rank-deficient ``Q``) is handled on the NumPy engine with the pseudo-inverse,
     :math:`G_k = P_k F_k^\top (P^-_{k+1})^{+}`, the smoother gain in that case
     (:func:`kftrack.kernels.rts_step`); the JAX engine solves without that branch (inf/NaN there).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.kalman import kalman_filter, rts_smoother
+    >>> from kftrack.models import ConstantVelocity
+    >>> cv = ConstantVelocity(ndim=1, q=0.1)
+    >>> zs = np.array([[0.0], [1.1], [np.nan], [2.9], [4.2]])
+    >>> filt = kalman_filter(zs, np.zeros(2), 10 * np.eye(2), cv.F(1.0), cv.Q(1.0), cv.H, np.eye(1))
+    >>> smooth = rts_smoother(filt, cv.F(1.0))
+    >>> print(np.round(smooth.x[2], 6))               # the missing step, now from both sides
+    [2.03797  1.009759]
+    >>> bool(np.all(smooth.x[-1] == filt.x[-1]))      # the last step is the filter's
+    True
     """
     if not isinstance(result, FilterResult):
         raise TypeError(f"result must be a FilterResult from kalman_filter, got {type(result).__name__}")

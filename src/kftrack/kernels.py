@@ -399,7 +399,16 @@ def kf_score(y, gain: Gain):
 def kf_update(x, P, z, H, R, form: str = "joseph") -> Update:
     """Measurement update: :func:`kf_gain` (the covariances, Joseph form with ``form="joseph"``,
     symmetrized, or the short form :math:`(I - KH)P` as computed with ``form="standard"``), then
-    :func:`kf_correct` (the mean) and :func:`kf_score` (NIS, log-likelihood)."""
+    :func:`kf_correct` (the mean) and :func:`kf_score` (NIS, log-likelihood).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.kernels import kf_update
+    >>> u = kf_update(np.array([1.0, 1.0]), np.diag([2.0, 1.0]), np.array([1.5]), np.array([[1.0, 0.0]]), np.eye(1))
+    >>> print(np.round(u.x, 6), np.round(u.S, 6))     # unchecked: kftrack.kalman.update validates, then calls this
+    [1.333333 1.      ] [[3.]]
+    """
     g = kf_gain(P, H, R, form)
     x_post, y = kf_correct(x, z, H, g.K)
     return Update(x_post, g.P, y, g.S, g.K, *kf_score(y, g))
@@ -591,7 +600,16 @@ def logsumexp(a, axis: int, keepdims: bool = False):
 
 def moment_match(w, xs, Ps):
     r"""Moment-matched Gaussian of a mixture: ``w`` (..., r), ``xs`` (r, ..., n), ``Ps`` (r, ..., n, n)
-    -> :math:`\bar x = \sum w_i x_i`, :math:`\bar P = \sum w_i [P_i + (x_i - \bar x)(x_i - \bar x)^\top]`."""
+    -> :math:`\bar x = \sum w_i x_i`, :math:`\bar P = \sum w_i [P_i + (x_i - \bar x)(x_i - \bar x)^\top]`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.kernels import moment_match
+    >>> x, P = moment_match(np.array([0.5, 0.5]), np.array([[-1.0], [1.0]]), np.array([[[1.0]], [[1.0]]]))
+    >>> print(np.round(x, 6) + 0.0, np.round(P, 6))   # mean 0, variance 1 + spread 1
+    [0.] [[2.]]
+    """
     xp = array_namespace(w, xs, Ps)
     wr = xp.moveaxis(w, -1, 0)  # (r, ...); the sums over the r components run term by term
     r = wr.shape[0]

@@ -36,6 +36,15 @@ def rmse(truth, estimate, axis=None, *, vector: bool = False) -> np.ndarray:
 
     ``truth`` and ``estimate`` must be finite (a NaN raises ``ValueError``: drop the missing
     entries, or the lost runs, before calling) and hold at least one value.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.metrics import rmse
+    >>> print(round(float(rmse([0.0, 0.0, 0.0], [1.0, -1.0, 2.0])), 6))   # sqrt((1 + 1 + 4) / 3)
+    1.414214
+    >>> print(round(float(rmse(np.zeros((4, 2)), np.ones((4, 2)), vector=True)), 6))   # 2-D position error
+    1.414214
     """
     tru = check_finite(as_float_array(truth, "truth"), "truth")
     est = check_finite(as_float_array(estimate, "estimate"), "estimate")
@@ -73,6 +82,13 @@ def nees(truth, estimate, P) -> np.ndarray:
     r"""Normalized estimation error squared :math:`(x-\hat x)^\top P^{-1}(x-\hat x)`.
 
     ``truth``, ``estimate``: ``(..., n)``; ``P``: ``(..., n, n)`` positive definite. Returns ``(...)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.metrics import nees
+    >>> print(np.round(nees(truth=[1.0, 2.0], estimate=[0.0, 0.0], P=np.diag([1.0, 4.0])), 6))   # 1/1 + 4/4
+    2.0
     """
     est = as_vector(estimate, "estimate")
     n = est.shape[-1]
@@ -83,7 +99,15 @@ def nees(truth, estimate, P) -> np.ndarray:
 
 
 def nis(y, S) -> np.ndarray:
-    r"""Normalized innovation squared :math:`y^\top S^{-1} y`; ``y`` ``(..., m)``, ``S`` ``(..., m, m)``."""
+    r"""Normalized innovation squared :math:`y^\top S^{-1} y`; ``y`` ``(..., m)``, ``S`` ``(..., m, m)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.metrics import nis
+    >>> print(np.round(nis([3.0], [[9.0]]), 6))       # y² / S
+    1.0
+    """
     y = as_vector(y, "y")
     S = check_covariance(S, "S", y.shape[-1], positive_definite=True)
     broadcast_batch({"y": y.shape[:-1], "S": S.shape[:-2]})
@@ -95,6 +119,16 @@ def anees(nees_values, dim: int, axis: int = 0) -> np.ndarray:
 
     ``nees_values`` holds one NEES per run along ``axis`` (runs first by default); a consistent
     filter gives values near 1. Compare with ``chi2_bounds(dim, runs, normalize=True)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.metrics import anees, chi2_bounds
+    >>> print(np.round(anees(np.array([1.8, 2.2, 2.0, 2.0]), dim=2), 6))   # NEES of 4 runs, n = 2
+    1.0
+    >>> lo, hi = chi2_bounds(2, runs=4, normalize=True)   # 95 % interval for that average
+    >>> bool(lo < 1.0 < hi)
+    True
     """
     if int(dim) != dim or dim < 1:
         raise ValueError(f"dim must be a positive integer, got {dim!r}")
@@ -116,6 +150,13 @@ def chi2_bounds(dof: int, runs: int = 1, confidence: float = 0.95, *, normalize:
 
     with probability ``confidence``. With ``normalize=True`` the bounds are divided by ``dof``
     (for ANEES). Returns ``(lower, upper)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.metrics import chi2_bounds
+    >>> print(np.round(chi2_bounds(2, runs=100), 4))  # average of 100 chi-square(2) values, 95 %
+    [1.6273 2.4106]
     """
     if int(dof) != dof or dof < 1:
         raise ValueError(f"dof must be a positive integer, got {dof!r}")

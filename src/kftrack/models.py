@@ -269,6 +269,20 @@ class ConstantVelocity(_Kinematic):
         :math:`Q = \sigma^2 \Gamma\Gamma^\top` (rank 1 per axis).
 
     Bar-Shalom, Li & Kirubarajan (2001), ch. 6. Give exactly one of ``q``, ``sigma2``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.models import ConstantVelocity
+    >>> cv = ConstantVelocity(ndim=1, q=1.0)          # state [x, vx], q in m²/s³
+    >>> cv.F(0.5)
+    array([[1. , 0.5],
+           [0. , 1. ]])
+    >>> print(np.round(cv.Q(1.0), 6))                 # q [[T³/3, T²/2], [T²/2, T]] at T = 1
+    [[0.333333 0.5     ]
+     [0.5      1.      ]]
+    >>> ConstantVelocity(ndim=2, sigma2=4.0).Q(np.array([0.5, 1.0, 2.0])).shape   # one Q per interval
+    (3, 4, 4)
     """
 
     _order = 1
@@ -288,6 +302,20 @@ class ConstantAcceleration(_Kinematic):
         discrete Wiener-process acceleration model, :math:`\Gamma = [T^2/2, T, 1]^\top` (rank 1).
 
     Bar-Shalom, Li & Kirubarajan (2001), ch. 6. Give exactly one of ``q``, ``sigma2``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.models import ConstantAcceleration
+    >>> ca = ConstantAcceleration(ndim=1, q=1.0)      # state [x, vx, ax], q in m²/s⁵
+    >>> ca.F(2.0)
+    array([[1., 2., 2.],
+           [0., 1., 2.],
+           [0., 0., 1.]])
+    >>> print(np.round(120 * ca.Q(1.0), 6))           # q [[T⁵/20, T⁴/8, T³/6], ...] times 120
+    [[  6.  15.  20.]
+     [ 15.  40.  60.]
+     [ 20.  60. 120.]]
     """
 
     _order = 2
@@ -313,6 +341,18 @@ class Singer(_LinearModel):
     ``F`` and ``Q`` are the exact exponential and noise integral (Singer 1970; Li & Jilkov 2003),
     with a Taylor branch for :math:`|\alpha T| < 1`, so that ``alpha -> 0`` tends to
     :class:`ConstantAcceleration` with spectral density ``q`` without cancellation.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.models import ConstantAcceleration, Singer
+    >>> print(np.round(Singer(tau=10.0, q=1.0).F(1.0), 6))   # the acceleration decays as exp(-T/tau)
+    [[1.       1.       0.483742]
+     [0.       1.       0.951626]
+     [0.       0.       0.904837]]
+    >>> ca, s = ConstantAcceleration(q=1.0), Singer(tau=np.inf, q=1.0)   # tau -> inf: constant acceleration
+    >>> bool(np.allclose(s.F(1.0), ca.F(1.0), rtol=1e-12) and np.allclose(s.Q(1.0), ca.Q(1.0), rtol=1e-12))
+    True
     """
 
     tau: float = 1.0
@@ -358,7 +398,14 @@ def singer_acceleration_variance(a_max: float, p_max: float, p_0: float) -> floa
     r"""Singer's (1970) acceleration variance from the expected manoeuvre,
     :math:`\sigma_m^2 = \frac{A_{max}^2}{3}(1 + 4P_{max} - P_0)` (m²/s⁴): the target accelerates at
     :math:`\pm A_{max}` with probability ``p_max`` each, not at all with ``p_0``, and uniformly
-    in between otherwise."""
+    in between otherwise.
+
+    Examples
+    --------
+    >>> from kftrack.models import singer_acceleration_variance
+    >>> singer_acceleration_variance(30.0, 0.1, 0.5)   # A_max = 30 m/s², P_max = 0.1, P_0 = 0.5
+    270.0
+    """
     a = float(check_finite(as_float_array(a_max, "a_max"), "a_max"))
     pm, p0 = float(as_float_array(p_max, "p_max")), float(as_float_array(p_0, "p_0"))
     if not (0 <= pm and 0 <= p0 and 2 * pm + p0 <= 1):
@@ -393,6 +440,16 @@ class KnownTurn(_LinearModel):
         constant-velocity approximation.
     sigma2 : variance of the discrete white acceleration per axis, **m²/s⁴** (direct-discrete,
         :math:`\Gamma = \mathrm{blockdiag}([T^2/2, T]^\top)`; Li & Jilkov 2003).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.models import KnownTurn
+    >>> turn = KnownTurn(omega=np.pi / 2, q=0.0)      # a quarter turn per second, state [x, vx, y, vy]
+    >>> print(np.round(turn.f(np.array([0.0, 1.0, 0.0, 0.0]), 1.0), 6) + 0.0)   # heading +x -> +y
+    [0.63662 0.      0.63662 1.     ]
+    >>> bool(np.allclose(KnownTurn(omega=0.0, q=1.0).F(2.0), np.kron(np.eye(2), [[1.0, 2.0], [0.0, 1.0]]), rtol=1e-12))   # omega = 0: constant velocity
+    True
     """
 
     omega: float = 0.0
@@ -453,6 +510,17 @@ class CoordinatedTurn:
         :math:`\omega` see :class:`KnownTurn`).
 
     Give either (``sigma2``, ``sigma2_omega``) or (``q``, ``q_omega``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.models import CoordinatedTurn
+    >>> ct = CoordinatedTurn(ndim=2, sigma2=1.0, sigma2_omega=0.01)   # state [x, vx, y, vy, omega]
+    >>> x = np.array([0.0, 10.0, 0.0, 0.0, 0.1])                    # 10 m/s along +x, turning 0.1 rad/s
+    >>> print(np.round(ct.f(x, 1.0), 6))
+    [9.983342 9.950042 0.499583 0.998334 0.1     ]
+    >>> ct.jacobian(x, 1.0).shape, ct.Q(1.0).shape
+    ((5, 5), (5, 5))
     """
 
     #: ``Q(dt)`` does not depend on the state (read by :mod:`kftrack.imm`).
@@ -530,6 +598,16 @@ class CoordinatedTurnPolar:
         v^+ = v,\; \chi^+ = \chi + \omega T,\; \omega^+ = \omega .
 
     Only the motion (``f``, ``jacobian``, ``H``); convert states with :func:`turn_state_to_polar`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.models import CoordinatedTurnPolar, turn_state_from_polar
+    >>> s = np.array([0.0, 0.0, 10.0, 0.0, np.pi / 20])   # [x, y, v, chi, omega]: 10 m/s along +x, turning left
+    >>> print(np.round(CoordinatedTurnPolar().f(s, 10.0), 6) + 0.0)   # a quarter turn of radius v / omega
+    [63.661977 63.661977 10.        1.570796  0.15708 ]
+    >>> print(np.round(turn_state_from_polar(s), 6) + 0.0)            # the same state as [x, vx, y, vy, omega]
+    [ 0.      10.       0.       0.       0.15708]
     """
 
     #: ``Q(dt)`` does not depend on the state (read by :mod:`kftrack.imm`).
@@ -824,6 +902,15 @@ class Turn3D(_LinearModel):
     for constant speed and curvature only when the torsion is zero (a planar turn, in any tilted
     plane); on a helix it misses :math:`v^3\kappa\tau\,\mathbf b`
     (:func:`kftrack.frenet.turn_model_residual`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.models import Turn3D
+    >>> turn = Turn3D(omega=0.1, q=1.0)                # state [x, vx, ax, y, vy, ay, z, vz, az]
+    >>> x = np.array([0.0, 10.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])   # 10 m/s, centripetal 1 m/s² to +y
+    >>> print(np.round(turn.f(x, 5 * np.pi)[[0, 1, 3, 4]], 6) + 0.0)   # a quarter turn later: x, vx, y, vy
+    [100.   0. 100.  10.]
     """
 
     omega: float = 0.0

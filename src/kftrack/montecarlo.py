@@ -47,6 +47,14 @@ def noisy_runs(rng: np.random.Generator, clean, sigma, runs: int) -> np.ndarray:
     Returns
     -------
     (T, N, m) measurements.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.montecarlo import noisy_runs
+    >>> clean = np.zeros((50, 2))                    # (T, m) noise-free positions
+    >>> noisy_runs(np.random.default_rng(0), clean, sigma=[1.0, 2.0], runs=200).shape   # (T, N, m)
+    (50, 200, 2)
     """
     check_rng(rng)
     clean = as_vector(clean, "clean")
@@ -135,7 +143,15 @@ class PairedDifference(NamedTuple):
 
 
 def paired_difference(a, b) -> PairedDifference:
-    """:class:`PairedDifference` of per-run values ``a`` and ``b`` (same shape, >= 2 runs)."""
+    """:class:`PairedDifference` of per-run values ``a`` and ``b`` (same shape, >= 2 runs).
+
+    Examples
+    --------
+    >>> from kftrack.montecarlo import paired_difference
+    >>> d = paired_difference([1.0, 2.0, 3.0, 4.0], [1.5, 1.5, 2.5, 4.5])   # per-run errors of a and b
+    >>> print(round(d.mean, 6), round(d.se, 6), d.runs)
+    0.0 0.288675 4
+    """
     a = np.ravel(check_finite(as_float_array(a, "a"), "a"))
     b = np.ravel(check_finite(as_float_array(b, "b"), "b"))
     if a.shape != b.shape or a.size < 2:
@@ -216,7 +232,27 @@ def compare(truth, estimates: Mapping[str, np.ndarray], components: Sequence[int
             start: int = 0, root: bool = False) -> Comparison:
     """:class:`Comparison` of estimates ``(T, N, n)`` (one per filter name) against ``truth``
     with :func:`per_run_error` (same ``components``, ``start``, ``root`` for every filter).
-    Arguments in the order of :mod:`kftrack.metrics`: ``(truth, estimates, ...)``."""
+    Arguments in the order of :mod:`kftrack.metrics`: ``(truth, estimates, ...)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.kalman import kalman_filter
+    >>> from kftrack.models import ConstantVelocity
+    >>> from kftrack.montecarlo import compare, noisy_runs, run_filters
+    >>> t = np.arange(50.0)
+    >>> truth = np.stack([2.0 * t, np.full(50, 2.0)], axis=-1)        # [x, vx], 2 m/s
+    >>> zs = noisy_runs(np.random.default_rng(0), truth[:, :1], sigma=1.0, runs=200)   # (T, N, 1)
+    >>> def kf(q):
+    ...     m = ConstantVelocity(ndim=1, q=q)
+    ...     return lambda z: kalman_filter(z, np.zeros(2), 100 * np.eye(2), m.F(1.0), m.Q(1.0), m.H, np.eye(1))
+    >>> est = run_filters({"q=0.01": kf(0.01), "q=10": kf(10.0)}, zs)
+    >>> c = compare(truth, est, components=[0], start=10, root=True)   # position RMSE per run, after step 10
+    >>> c.ranking(), c.runs
+    (('q=0.01', 'q=10'), 200)
+    >>> bool(c.paired("q=0.01", "q=10").z < -3)       # on the same noise, by many standard errors
+    True
+    """
     if isinstance(truth, Mapping):
         raise TypeError("truth must be an array (T, n') or (T, ..., n'), got a mapping; the order is "
                         "compare(truth, estimates, ...) with estimates a mapping name -> (T, N, n) array")

@@ -444,6 +444,24 @@ def bootstrap_filter(zs, x0, P0, f, Q, h, R, N: int, rng: np.random.Generator, *
     ValueError
         Naming the function and the step, if ``f`` or ``h`` returns NaN or inf (checked after
         every call); if every particle of a cloud has zero likelihood.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.kalman import kalman_filter
+    >>> from kftrack.models import ConstantVelocity
+    >>> from kftrack.particle import bootstrap_filter
+    >>> cv = ConstantVelocity(ndim=1, q=0.1)          # state [x, vx]; position measured
+    >>> zs = np.array([[0.0], [1.1], [np.nan], [2.9], [4.2]])
+    >>> pf = bootstrap_filter(zs, np.zeros(2), 10 * np.eye(2), lambda x: cv.f(x, 1.0), cv.Q(1.0),
+    ...                       lambda x: x[..., :1], np.eye(1), N=2000, rng=np.random.default_rng(0))
+    >>> pf.x.shape, pf.ess.shape
+    ((5, 2), (5,))
+    >>> # linear and Gaussian: the Kalman filter is exact; over 30 seeds the particle mean of x
+    >>> # differs from it by 0.04 (standard deviation), so 0.2 is five of them
+    >>> kf = kalman_filter(zs, np.zeros(2), 10 * np.eye(2), cv.F(1.0), cv.Q(1.0), cv.H, np.eye(1))
+    >>> bool(np.all(np.abs(pf.x[-1] - kf.x[-1]) < 0.2))
+    True
     """
     zs, missing, x0, P0, R, N, n, m, batch, method, threshold, angles = _common(
         zs, x0, P0, R, N, rng, method, threshold, angle_components)

@@ -30,6 +30,14 @@ def ellipse_points(mean, cov, nsigma: float | None = None, confidence: float | N
     Give either ``nsigma`` (``r = nsigma``) or ``confidence`` (``r^2 = \chi^2_2(confidence)``,
     the region holding that probability mass); the default is ``nsigma = 2``.
     ``mean`` is ``(2,)``, ``cov`` is ``(2, 2)`` (the position block of a larger covariance).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.plotting import ellipse_points
+    >>> pts = ellipse_points([0.0, 0.0], np.diag([4.0, 1.0]), nsigma=1.0, num=5)   # semi-axes 2 and 1
+    >>> pts.shape, np.round(np.abs(pts).max(axis=0), 6).tolist()
+    ((5, 2), [2.0, 1.0])
     """
     mean = as_vector(mean, "mean", 2)
     cov = check_covariance(cov, "cov", 2)
@@ -48,7 +56,18 @@ def ellipse_points(mean, cov, nsigma: float | None = None, confidence: float | N
 
 
 def covariance_ellipse(ax, mean, cov, nsigma: float | None = None, confidence: float | None = None, **kwargs):
-    """Draw the covariance ellipse of a 2-D Gaussian on ``ax``; returns the line."""
+    """Draw the covariance ellipse of a 2-D Gaussian on ``ax``; returns the line.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from matplotlib.figure import Figure
+    >>> from kftrack.plotting import covariance_ellipse
+    >>> ax = Figure().add_subplot()                   # no window: draw on a figure in memory
+    >>> line = covariance_ellipse(ax, [0.0, 0.0], np.diag([4.0, 1.0]), confidence=0.95)
+    >>> line.get_xydata().shape
+    (100, 2)
+    """
     pts = ellipse_points(mean, cov, nsigma=nsigma, confidence=confidence)
     kwargs.setdefault("lw", 1.0)
     (line,) = ax.plot(pts[:, 0], pts[:, 1], **kwargs)

@@ -105,6 +105,13 @@ def effective_sample_size(log_weights) -> np.ndarray:
     Computed as :math:`\exp(-\operatorname{logsumexp}(2\log \bar w))` with normalized
     :math:`\log\bar w`; between 1 (one particle holds all the weight) and ``N`` (equal weights).
     Returns ``(...)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.resampling import effective_sample_size
+    >>> print(np.round(effective_sample_size(np.log([0.1, 0.2, 0.3, 0.4])), 6))   # 1 / sum(w²)
+    3.333333
     """
     lw = normalize_log_weights(log_weights)
     return np.exp(-_logsumexp(2.0 * lw, axis=-1))
@@ -146,6 +153,13 @@ def offspring_counts(weights, rng: np.random.Generator, method: str = "systemati
     Returns
     -------
     (..., N) integer counts with :math:`E[c_i] = \text{size}\cdot w^i` for every scheme.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.resampling import offspring_counts
+    >>> offspring_counts(np.array([0.5, 0.25, 0.25, 0.0]), np.random.default_rng(0), "systematic")   # N w when whole
+    array([2, 1, 1, 0])
     """
     check_rng(rng)
     w = check_weights(weights)
@@ -190,7 +204,15 @@ def counts_to_indices(counts) -> np.ndarray:
 
 
 def resample_indices(weights, rng: np.random.Generator, method: str = "systematic") -> np.ndarray:
-    """Ancestor indices ``(..., N)`` of one resampling of each cloud (see :func:`offspring_counts`)."""
+    """Ancestor indices ``(..., N)`` of one resampling of each cloud (see :func:`offspring_counts`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.resampling import resample_indices
+    >>> resample_indices(np.array([0.5, 0.25, 0.25, 0.0]), np.random.default_rng(0), "residual")
+    array([0, 0, 1, 2])
+    """
     return counts_to_indices(offspring_counts(weights, rng, method))
 
 

@@ -46,7 +46,16 @@ def _wrap(a):
 
 
 def transform_points(pose, points) -> np.ndarray:
-    r"""Map body-frame ``points`` ``(..., N, 2)`` to the world with ``pose`` ``(..., 3)``: :math:`R p + t`."""
+    r"""Map body-frame ``points`` ``(..., N, 2)`` to the world with ``pose`` ``(..., 3)``: :math:`R p + t`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.scanmatch import transform_points
+    >>> pose = [1.0, 2.0, np.pi / 2]                  # (x, y, heading): at (1, 2), facing +y
+    >>> print(np.round(transform_points(pose, [[1.0, 0.0]]), 6) + 0.0)   # 1 m ahead, in the world
+    [[1. 3.]]
+    """
     pose = as_vector(pose, "pose", 3)
     points = as_vector(points, "points", 2)
     return points @ np.swapaxes(rotation(pose[..., 2]), -1, -2) + pose[..., None, :2]
@@ -54,7 +63,16 @@ def transform_points(pose, points) -> np.ndarray:
 
 def compose(a, b) -> np.ndarray:
     r"""Pose composition :math:`a \oplus b` ``(..., 3)``: ``b`` expressed in the frame of ``a``,
-    mapped to the world (heading wrapped to :math:`(-\pi, \pi]`)."""
+    mapped to the world (heading wrapped to :math:`(-\pi, \pi]`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.scanmatch import compose, inverse
+    >>> a = np.array([1.0, 2.0, 0.5])
+    >>> print(np.round(compose(a, inverse(a)), 9) + 0.0)
+    [0. 0. 0.]
+    """
     a = as_vector(a, "a", 3)
     b = as_vector(b, "b", 3)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
@@ -149,6 +167,17 @@ def icp(source, target, initial=(0.0, 0.0, 0.0), *, max_iterations: int = 50, to
     Returns
     -------
     ICPResult
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.scanmatch import icp, inverse, transform_points
+    >>> target = np.random.default_rng(0).uniform(-5.0, 5.0, (200, 2))   # a reference scan
+    >>> true = np.array([0.3, -0.2, 0.1])                              # pose of the source frame
+    >>> source = transform_points(inverse(true), target)                # the same points, seen from it
+    >>> res = icp(source, target)
+    >>> print(np.round(res.pose, 6), res.converged)
+    [ 0.3 -0.2  0.1] True
     """
     p = _points(source, "source", 3)
     q = _points(target, "target", 3)

@@ -220,6 +220,16 @@ def car_radar(rng: np.random.Generator, n_steps: int = 30, *, sigma: float = 0.1
     -------
     Scenario
         ``t`` ``(T,)``; ``truth`` ``(T[, runs], 2)`` as ``[x, vx]``; ``z`` ``(T[, runs], 1)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.scenarios import car_radar
+    >>> sc = car_radar(np.random.default_rng(0), n_steps=30)      # t, truth [x, vx], z (range)
+    >>> sc.t.shape, sc.truth.shape, sc.z.shape
+    ((30,), (30, 2), (30, 1))
+    >>> car_radar(np.random.default_rng(0), runs=100).z.shape     # 100 noise runs on a batch axis
+    (30, 100, 1)
     """
     n_steps = _count(n_steps, "n_steps")
     runs = _count(runs, "runs", allow_none=True)
@@ -456,7 +466,18 @@ MARTINS2018_SCENARIOS = MappingProxyType({
 def drone_scenario(rng: np.random.Generator, name: str, *, sigma: float | None = None) -> ManoeuvreScenario:
     """Study 000's scenario ``"I"``, ``"II"`` or ``"III"`` (:data:`MARTINS2018_SCENARIOS`),
     simulated exactly (:func:`kftrack.frenet.simulate`), with position noise of the study's
-    ``sigma`` (0.5, 2, 5 m) unless given."""
+    ``sigma`` (0.5, 2, 5 m) unless given.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.scenarios import drone_scenario
+    >>> sc = drone_scenario(np.random.default_rng(0), "II")   # straight, left turn, straight, right turn, straight
+    >>> sc.t.shape, sc.truth.shape, sc.z.shape               # truth [x, vx, y, vy, z, vz], z positions
+    ((245,), (245, 6), (245, 3))
+    >>> np.bincount(sc.label)                                 # samples on straight legs, in turns
+    array([150,  95])
+    """
     if name not in MARTINS2018_SCENARIOS:
         raise ValueError(f"name must be one of {tuple(MARTINS2018_SCENARIOS)}, got {name!r}")
     sc = MARTINS2018_SCENARIOS[name]

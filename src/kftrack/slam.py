@@ -117,6 +117,16 @@ class Unicycle:
     ----------
     sigma_v : standard deviation of the measured speed (m/s).
     sigma_omega : standard deviation of the measured turn rate (rad/s).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.slam import Unicycle
+    >>> robot = Unicycle(sigma_v=0.1, sigma_omega=0.01)
+    >>> print(np.round(robot.f([0.0, 0.0, 0.0], u=[1.0, 0.0], dt=1.0), 6) + 0.0)   # 1 m/s straight ahead for 1 s
+    [1. 0. 0.]
+    >>> robot.Q([0.0, 0.0, 0.0], [1.0, 0.1], 1.0).shape
+    (3, 3)
     """
 
     sigma_v: float
@@ -155,7 +165,19 @@ class Unicycle:
 
 def observe(pose, landmark) -> np.ndarray:
     """Noise-free range and bearing ``(..., 2)`` of ``landmark`` ``(..., 2)`` from ``pose`` ``(..., 3)``;
-    bearing from the heading, wrapped to (-pi, pi]."""
+    bearing from the heading, wrapped to (-pi, pi].
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.slam import inverse_observation, observe
+    >>> pose = [0.0, 0.0, np.pi / 2]                  # at the origin, facing +y
+    >>> z = observe(pose, [0.0, 5.0])                  # range, bearing from the heading
+    >>> print(np.round(z, 6) + 0.0)
+    [5. 0.]
+    >>> print(np.round(inverse_observation(pose, z), 6) + 0.0)
+    [0. 5.]
+    """
     pose = as_vector(pose, "pose", 3)
     landmark = as_vector(landmark, "landmark", 2)
     z = _generated()["h"](*_split(pose), *_split(landmark))[..., 0]
@@ -446,6 +468,19 @@ def ekf_slam(x0, P0, odometry, dt: float, observations, R, model: Unicycle, *, k
     Returns
     -------
     SlamResult
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.scenarios import ring_landmarks, slam_loop
+    >>> from kftrack.slam import Unicycle, ekf_slam, landmark_count
+    >>> rng = np.random.default_rng(0)
+    >>> world = slam_loop(rng, ring_landmarks(rng, count=12), loops=1.0)   # one loop, dt = 0.25 s
+    >>> model = Unicycle(sigma_v=0.05, sigma_omega=np.deg2rad(3.0))
+    >>> R = np.diag([0.1 ** 2, np.deg2rad(2.0) ** 2])                    # range (m), bearing (rad)
+    >>> res = ekf_slam(world.truth[0], np.zeros((3, 3)), world.odometry, 0.25, world.observations, R, model)
+    >>> res.pose.shape, landmark_count(res.x[-1]), res.x[-1].shape        # pose per step; the map grew to 12
+    ((152, 3), 12, (27,))
     """
     dt = _check_motion(dt, model)
     x = as_vector(x0, "x0", 3)

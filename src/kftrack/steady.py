@@ -108,6 +108,15 @@ def continuous_gain(A, C, Q, R, G=None) -> SteadyState:
     Returns
     -------
     SteadyState(L (n, m), P (n, n)).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.steady import continuous_gain
+    >>> ss = continuous_gain(A=[[0.0, 1.0], [0.0, 0.0]], C=[[1.0, 0.0]], Q=[[1.0]], R=[[1.0]], G=[[0.0], [1.0]])
+    >>> print(np.round(ss.L, 6))                      # [sqrt(2), 1] for q = r = 1
+    [[1.414214]
+     [1.      ]]
     """
     A, C, Q, R, G = _system(A, C, Q, R, G)
     P = _solve_are(scipy.linalg.solve_continuous_are, A.T, C.T, G @ Q @ G.T, R, "A, C", "G Q G^T")
@@ -126,6 +135,16 @@ def discrete_gain(F, H, Q, R) -> DiscreteSteadyState:
     ----------
     F : (n, n) transition. H : (m, n). Q : (n, n) process-noise variance per step.
     R : (m, m) measurement variance, positive definite.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.steady import discrete_gain
+    >>> F = np.array([[1.0, 1.0], [0.0, 1.0]]); H = [[1.0, 0.0]]
+    >>> Q = np.array([[0.25, 0.5], [0.5, 1.0]])       # DWNA, sigma_w = 1 m/s², T = 1 s
+    >>> print(np.round(discrete_gain(F, H, Q, [[1.0]]).K, 6))   # alpha = 0.75, beta = 0.5 at lambda = 1
+    [[0.75]
+     [0.5 ]]
     """
     F, H, Q, R, _ = _system(F, H, Q, R, None, names=("F", "H"))
     P = _solve_are(scipy.linalg.solve_discrete_are, F.T, H.T, Q, R, "F, H", "Q")
@@ -260,6 +279,12 @@ def tracking_index(sigma_w, sigma_v, dt):
     ``sigma_w`` is the standard deviation of the discrete white acceleration (DWNA model,
     m/s²) or of the acceleration increment (DWPA model), ``sigma_v`` that of the position
     measurement (m), ``dt`` the sample time (s). Broadcasts.
+
+    Examples
+    --------
+    >>> from kftrack.steady import tracking_index
+    >>> print(tracking_index(sigma_w=2.0, sigma_v=10.0, dt=1.0))   # sigma_w T² / sigma_v
+    0.2
     """
     sw = as_float_array(sigma_w, "sigma_w")
     sv = as_float_array(sigma_v, "sigma_v")
@@ -292,6 +317,14 @@ def alpha_beta_gains(lam) -> tuple[np.ndarray, np.ndarray]:
         \beta = \tfrac14\left(\lambda^2 + 4\lambda - \lambda\sqrt{\lambda^2 + 8\lambda}\right).
 
     The Kalman gain is :math:`K = [\alpha, \beta / T]^\top`. ``lam`` broadcasts.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.steady import alpha_beta_gains
+    >>> alpha, beta = alpha_beta_gains(1.0)           # the same gains as discrete_gain's K for lambda = 1
+    >>> print(np.round([alpha, beta], 6))
+    [0.75 0.5 ]
     """
     lam = _lam(lam)
     r = np.sqrt(lam**2 + 8 * lam)
@@ -310,6 +343,16 @@ def alpha_beta_gamma_gains(lam) -> tuple[float, float, float]:
     (Bar-Shalom, Li & Kirubarajan 2001, §6.5.3). They satisfy
     :math:`\beta = 2(2-\alpha) - 4\sqrt{1-\alpha}`, :math:`\gamma = \beta^2/\alpha` and
     :math:`\lambda^2 = \gamma^2 / (4(1-\alpha))` (checked in the tests). ``lam`` is a scalar.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.steady import alpha_beta_gamma_gains
+    >>> a, b, g = alpha_beta_gamma_gains(0.5)
+    >>> print(np.round([a, b, g], 6))
+    [0.795374 0.599827 0.452356]
+    >>> bool(np.isclose(g, b * b / a, rtol=1e-9))      # gamma = beta² / alpha
+    True
     """
     lam = float(_lam(lam))
     if lam == 0:

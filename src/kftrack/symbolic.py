@@ -50,7 +50,16 @@ alpha = sp.Symbol("alpha", positive=True)
 # --------------------------------------------------------------------------------------------
 def kinematic_A(order: int) -> sp.Matrix:
     r"""Chain of integrators for one axis: ``order=1`` constant velocity ``[p, v]``,
-    ``order=2`` constant acceleration ``[p, v, a]``. The white noise drives the last state."""
+    ``order=2`` constant acceleration ``[p, v, a]``. The white noise drives the last state.
+
+    Examples
+    --------
+    >>> from kftrack.symbolic import kinematic_A
+    >>> kinematic_A(1)                                # [p, v]: p' = v, v' = w
+    Matrix([
+    [0, 1],
+    [0, 0]])
+    """
     if order not in (1, 2):
         raise ValueError(f"order must be 1 (constant velocity) or 2 (constant acceleration), got {order!r}")
     n = order + 1
@@ -91,7 +100,16 @@ def _simplify(M: sp.Matrix) -> sp.Matrix:
 
 
 def transition_matrix(A: sp.Matrix, t: sp.Expr = T) -> sp.Matrix:
-    r"""The exact transition matrix :math:`F(t) = e^{A t}` (SymPy's matrix exponential)."""
+    r"""The exact transition matrix :math:`F(t) = e^{A t}` (SymPy's matrix exponential).
+
+    Examples
+    --------
+    >>> from kftrack.symbolic import kinematic_A, transition_matrix
+    >>> transition_matrix(kinematic_A(1))             # exp(A T)
+    Matrix([
+    [1, T],
+    [0, 1]])
+    """
     return _simplify((A * t).exp())
 
 
@@ -99,7 +117,18 @@ def continuous_white_noise(A: sp.Matrix, G: sp.Matrix, Qc: sp.Matrix, t: sp.Expr
     r"""Process noise of continuous white noise,
     :math:`Q(t) = \int_0^t e^{A\tau} G Q_c G^\top e^{A^\top\tau} d\tau` (Bar-Shalom et al. 2001, ch. 4 and 6).
 
-    ``Qc`` holds the power spectral densities (e.g. m²/s³ for white acceleration)."""
+    ``Qc`` holds the power spectral densities (e.g. m²/s³ for white acceleration).
+
+    Examples
+    --------
+    >>> import sympy as sp
+    >>> from kftrack.symbolic import continuous_white_noise, kinematic_A
+    >>> q = sp.Symbol("q", positive=True)
+    >>> continuous_white_noise(kinematic_A(1), sp.Matrix([0, 1]), sp.Matrix([[q]]))
+    Matrix([
+    [T**3*q/3, T**2*q/2],
+    [T**2*q/2,      T*q]])
+    """
     Ft = transition_matrix(A, tau)
     integrand = Ft * G * Qc * G.T * Ft.T
     Q = integrand.applyfunc(lambda e: sp.integrate(sp.expand(sp.trigsimp(e)), (tau, 0, t)))
@@ -183,7 +212,18 @@ def polar_turn_transition() -> tuple[sp.Matrix, sp.Matrix]:
 
 
 def jacobian(f: sp.Matrix, x: sp.Matrix) -> sp.Matrix:
-    r"""Jacobian :math:`\partial f / \partial x` of a vector function, simplified."""
+    r"""Jacobian :math:`\partial f / \partial x` of a vector function, simplified.
+
+    Examples
+    --------
+    >>> import sympy as sp
+    >>> from kftrack.symbolic import jacobian
+    >>> x, v = sp.symbols("x v")
+    >>> jacobian(sp.Matrix([x**2, sp.sin(v)]), sp.Matrix([x, v]))
+    Matrix([
+    [2*x,      0],
+    [  0, cos(v)]])
+    """
     return _simplify(f.jacobian(x))
 
 

@@ -58,7 +58,21 @@ def lsq_initiation(zs, dt: float, R) -> tuple[np.ndarray, np.ndarray]:
 
 
 def two_point_initiation(z1, z2, dt: float, R):
-    """Two-point differencing; see :func:`lsq_initiation` (``k = 2``)."""
+    """Two-point differencing; see :func:`lsq_initiation` (``k = 2``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.trackmanagement import two_point_initiation
+    >>> x, P = two_point_initiation([0.0, 0.0], [10.0, 5.0], dt=1.0, R=np.eye(2))
+    >>> print(x)                                      # [x, vx, y, vy] at the second scan
+    [10. 10.  5.  5.]
+    >>> print(np.round(P, 6))                         # per axis R [[1, 1/T], [1/T, 2/T²]]
+    [[1. 1. 0. 0.]
+     [1. 2. 0. 0.]
+     [0. 0. 1. 1.]
+     [0. 0. 1. 2.]]
+    """
     return lsq_initiation(np.stack([as_vector(z1, "z1"), as_vector(z2, "z2")]), dt, R)
 
 
@@ -76,7 +90,15 @@ def _check_mn(M, N):
 
 def m_of_n_probability(p, M: int, N: int) -> np.ndarray:
     r"""Probability of at least ``M`` hits in ``N`` independent scans of hit probability ``p``:
-    :math:`\sum_{k=M}^{N}\binom Nk p^k (1-p)^{N-k}`."""
+    :math:`\sum_{k=M}^{N}\binom Nk p^k (1-p)^{N-k}`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.trackmanagement import m_of_n_probability
+    >>> print(np.round(m_of_n_probability(0.9, M=2, N=3), 6))   # 3 p² (1 - p) + p³
+    0.972
+    """
     M, N = _check_mn(M, N)
     p = as_float_array(p, "p")
     if np.any((p < 0) | (p > 1)):
@@ -95,6 +117,13 @@ def m_of_n_confirm(hits, M: int, N: int) -> np.ndarray:
     -------
     (...) int: the scan index of confirmation, or -1 if never (within ``K`` scans). For
     deletion, pass ``~hits`` (``M`` misses among the last ``N``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.trackmanagement import m_of_n_confirm
+    >>> print(m_of_n_confirm(np.array([True, False, False, True, True]), M=2, N=3))   # scan index
+    4
     """
     M, N = _check_mn(M, N)
     h = np.asarray(hits)

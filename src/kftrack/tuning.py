@@ -338,6 +338,21 @@ def fit_noise(log_params0, build: Callable, zs, x0, P0, *, method: str = "scipy"
     ------
     ValueError, TypeError
         On bad input, naming the argument.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.models import ConstantVelocity
+    >>> from kftrack.tuning import fit_noise, white_noise_build
+    >>> cv = ConstantVelocity(ndim=1, q=1.0)           # simulate 400 steps with q = 1 m²/s³, r = 4 m²
+    >>> rng, L = np.random.default_rng(0), np.linalg.cholesky(cv.Q(1.0))
+    >>> x, zs = np.zeros(2), []
+    >>> for k in range(400):
+    ...     zs.append(x[:1] + 2.0 * rng.standard_normal(1))
+    ...     x = cv.F(1.0) @ x + L @ rng.standard_normal(2)
+    >>> fit = fit_noise(np.log([0.1, 1.0]), white_noise_build(cv, 1.0), np.array(zs), np.zeros(2), 100 * np.eye(2))
+    >>> print(np.round(fit.params, 1), fit.converged)   # (q, r) by maximum likelihood, from one record
+    [1.  3.9] True
     """
     if method not in _METHODS:
         raise ValueError(f"method must be one of {_METHODS}, got {method!r}")

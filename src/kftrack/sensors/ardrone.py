@@ -594,5 +594,15 @@ def read_log(path: str | Path, experiment: str) -> ArdroneLog:
 
 
 def load_log(experiment: str) -> ArdroneLog:
-    """Load the committed synthetic log of ``experiment`` ("A", "B" or "C") from ``data/``."""
+    """Load the committed synthetic log of ``experiment`` ("A", "B" or "C") from ``data/``.
+
+    Examples
+    --------
+    >>> from kftrack.sensors.ardrone import CHANNELS, load_log
+    >>> log = load_log("A")                            # experiment A: at rest, motors off
+    >>> log.t.shape, log.raw.shape, len(CHANNELS)      # time first; raw units, one column per channel
+    ((1500,), (1500, 7), 7)
+    >>> log.n_corrupt                                  # corrupt records skipped and counted
+    3
+    """
     return read_log(data_path(log_filename(experiment)), experiment)

@@ -171,6 +171,17 @@ def parse_sentence(line: str | bytes) -> tuple[str, dict | None]:
     negative speed over ground, or an RMC date that does not exist (31 February).
 
     Never raises for bad content; raises ``TypeError`` only if ``line`` is not str or bytes.
+
+    Examples
+    --------
+    >>> from kftrack.sensors.gps import parse_sentence
+    >>> status, fix = parse_sentence("$GPRMC,123519,A,4807.038,N,01131.000,E,022.4,084.4,230394,003.1,W*6A")
+    >>> status, fix["type"], fix["time"], round(fix["lat"], 6), round(fix["lon"], 6)   # s of the UTC day, degrees
+    ('ok', 'RMC', 45319.0, 48.1173, 11.516667)
+    >>> round(fix["speed"], 6), round(fix["course"], 6)   # m/s (from 22.4 kn), rad clockwise from North
+    (11.523556, 1.473058)
+    >>> parse_sentence("$GPRMC,123519,A,4807.038,N,01131.000,E,022.4,084.4,230394,003.1,W*6B")[0]
+    'bad_checksum'
     """
     if isinstance(line, (bytes, bytearray)):
         try:
@@ -282,6 +293,14 @@ def read_nmea_log(source) -> tuple[NmeaFixes, SkipReport]:
     Returns
     -------
     (NmeaFixes, SkipReport)
+
+    Examples
+    --------
+    >>> from kftrack.sensors.gps import read_nmea_log
+    >>> lines = ["$GPRMC,123519,A,4807.038,N,01131.000,E,022.4,084.4,230394,003.1,W*6A", "garbage"]
+    >>> fixes, report = read_nmea_log(lines)           # a path, bytes, or lines
+    >>> len(fixes.time), report.total, report.counts["malformed"], report.lines
+    (1, 2, 1, [(2, 'malformed')])
     """
     rows: dict[float, dict] = {}
     counts = Counter({r: 0 for r in SKIP_REASONS})

@@ -73,6 +73,14 @@ def ray_cast(walls, origin, angles, max_range: float = np.inf) -> np.ndarray:
     Returns
     -------
     (..., B) ranges.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.sensors.lidar import ray_cast
+    >>> room = np.array([[[-2, -2], [2, -2]], [[2, -2], [2, 2]], [[2, 2], [-2, 2]], [[-2, 2], [-2, -2]]], float)
+    >>> print(np.round(ray_cast(room, [0.0, 0.0], [0.0, np.pi / 4, np.pi / 2]), 6))   # a 4 m square room
+    [2.       2.828427 2.      ]
     """
     w = as_walls(walls)
     o = as_vector(origin, "origin", 2)
@@ -102,6 +110,17 @@ class Lidar:
     resolution_deg : angular step θ between beams (degrees; seed 003's Algorithm 1 parameter).
     sigma_range : standard deviation of the range noise (m).
     max_range : readings beyond this are no-returns (m).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.sensors.lidar import Lidar
+    >>> room = np.array([[[-2, -2], [2, -2]], [[2, -2], [2, 2]], [[2, 2], [-2, 2]], [[-2, 2], [-2, -2]]], float)
+    >>> lidar = Lidar(resolution_deg=90.0)                      # four beams: ahead, left, behind, right
+    >>> print(np.round(lidar.ranges(room, pose=[1.0, 0.0, 0.0]), 6))
+    [1. 2. 3. 2.]
+    >>> lidar.scan(room, [1.0, 0.0, 0.0], np.random.default_rng(0)).shape   # with range noise
+    (4,)
     """
 
     resolution_deg: float = 1.0
@@ -142,6 +161,14 @@ def scan_to_points(ranges, angles, pose=None) -> np.ndarray:
 
     No-returns (``inf``/``NaN``) are dropped. With ``pose`` ``(3,)`` the points are mapped from the
     sensor frame to the world frame (:func:`kftrack.scanmatch.transform_points`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.sensors.lidar import scan_to_points
+    >>> print(np.round(scan_to_points([1.0, np.inf, 2.0], [0.0, np.pi / 2, np.pi]), 6) + 0.0)   # no-return dropped
+    [[ 1.  0.]
+     [-2.  0.]]
     """
     r = np.asarray(ranges, dtype=float)
     a = np.asarray(angles, dtype=float)

@@ -262,6 +262,19 @@ class RangeBearing(Radar):
     r"""2-D radar, :math:`z = [r, \theta]` with :math:`\theta = \operatorname{atan2}(\Delta y, \Delta x)`.
 
     ``sigmas = (sigma_range, sigma_bearing)`` in m and rad; default position indices ``(0, 2)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.sensors.radar import RangeBearing
+    >>> radar = RangeBearing(sigmas=(10.0, np.deg2rad(1.0)))   # m and rad, at the origin
+    >>> x = np.array([3000.0, 0.0, 4000.0, 0.0])                # state [x, vx, y, vy]
+    >>> print(np.round(radar.h(x), 6).tolist())                 # range (m), bearing from +x (rad)
+    [5000.0, 0.927295]
+    >>> radar.jacobian(x).shape
+    (2, 4)
+    >>> print(np.round(radar.to_cartesian(radar.h(x)).p, 1))    # debiased conversion to x, y (m)
+    [3000.5 4000.6]
     """
 
     position_indices: tuple[int, ...] = (0, 2)
@@ -276,6 +289,14 @@ class RangeAzimuthElevation(Radar):
 
     ``sigmas = (sigma_range, sigma_azimuth, sigma_elevation)`` in m and rad; default position
     indices ``(0, 2, 4)`` for ``[x, vx, y, vy, z, vz, ...]``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kftrack.sensors.radar import RangeAzimuthElevation
+    >>> radar = RangeAzimuthElevation(sigmas=(10.0, 0.01, 0.01))
+    >>> print(np.round(radar.h(np.array([3.0, 0.0, 4.0, 0.0, 0.0, 0.0])), 6) + 0.0)   # r, azimuth, elevation
+    [5.       0.927295 0.      ]
     """
 
     position_indices: tuple[int, ...] = (0, 2, 4)
