@@ -125,3 +125,16 @@ def test_readme_example_runs_in_the_installed_copy(installed):
     # least 0.008 m from a rounding boundary: a thousand times the largest round-off difference across
     # OpenBLAS kernels that the package allows anywhere (1e-8 relative, on positions below 1 km: 1e-5 m)
     assert res.stdout == expected
+
+
+def test_doctests_pass_in_the_installed_copy(installed):
+    """The Examples sections run against the wheel's copy, from another directory (the data
+    scripts under kftrack/data are regeneration tools, not package modules)."""
+    _, target, elsewhere, env = installed
+    pkg = target / "kftrack"
+    res = subprocess.run([sys.executable, "-S", "-m", "pytest", "-q", "-p", "no:cacheprovider", "--rootdir",
+                          str(elsewhere), "-o", "doctest_optionflags=NORMALIZE_WHITESPACE", "--doctest-modules",
+                          f"--ignore={pkg / 'data'}", str(pkg)], cwd=elsewhere, env=env, capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
+    passed = int(re.search(r"(\d+) passed", res.stdout).group(1))
+    assert passed >= 90 and "failed" not in res.stdout  # every module's Examples, not an empty run
