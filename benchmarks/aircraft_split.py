@@ -21,7 +21,6 @@ summary, wins and losses, timings).
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 import time
@@ -33,7 +32,7 @@ from kftrack import adsb
 from kftrack import aircraft as A
 from kftrack import flighttuning as T
 from kftrack.compare import compare_runs
-from kftrack.datasets import data_path
+from kftrack.datasets import load_script
 from kftrack.flightscore import category_summary, evaluate, intervals, wins_losses
 
 HERE = Path(__file__).resolve().parent
@@ -41,14 +40,7 @@ SEED = 26
 
 
 def _baseline_module():
-    spec = importlib.util.spec_from_file_location("adsb_baseline", data_path("adsb/baseline.py"))
-    mod = importlib.util.module_from_spec(spec)
-    old, sys.dont_write_bytecode = sys.dont_write_bytecode, True   # no __pycache__ inside data/
-    try:
-        spec.loader.exec_module(mod)
-    finally:
-        sys.dont_write_bytecode = old
-    return mod
+    return load_script("adsb/baseline.py")
 
 
 def train(load=None) -> T.CvTuning:

@@ -1,9 +1,7 @@
 """Tests of kftrack.aircraft: the chapter-18 recipe, its scoring rule and the baselines."""
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 import warnings
 
 import numpy as np
@@ -11,20 +9,13 @@ import pytest
 
 from kftrack import aircraft as A
 from kftrack.adsb import CHAPTER_FLIGHTS, NOISY_FLIGHTS, UNSEEN_FLIGHTS, load_flight, to_enu
-from kftrack.datasets import data_path
+from kftrack.datasets import load_script
 
 EPS = np.finfo(float).eps
 
 
 def _baseline_module():
-    spec = importlib.util.spec_from_file_location("adsb_baseline", data_path("adsb/baseline.py"))
-    mod = importlib.util.module_from_spec(spec)
-    old, sys.dont_write_bytecode = sys.dont_write_bytecode, True   # no __pycache__ inside data/
-    try:
-        spec.loader.exec_module(mod)
-    finally:
-        sys.dont_write_bytecode = old
-    return mod
+    return load_script("adsb/baseline.py")
 
 
 @pytest.fixture(scope="module")

@@ -85,12 +85,16 @@ _MODULES = (
 __all__ = sorted(_MODULES)
 
 
-def __getattr__(name: str):
-    """``kftrack.<module>``: import the module on first use (PEP 562)."""
-    if name in _MODULES:
-        return importlib.import_module(f"{__name__}.{name}")
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+def lazy_modules(package: str, names: tuple, namespace: dict):
+    """``(__getattr__, __dir__)`` of a package whose submodules ``names`` are imported on first
+    use (PEP 562); ``namespace`` is the package's ``globals()``. Used here and by ``kftrack.sensors``."""
+
+    def getattr_(name: str):
+        if name in names:
+            return importlib.import_module(f"{package}.{name}")
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+
+    return getattr_, lambda: sorted(set(namespace) | set(names))
 
 
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_modules(__name__, _MODULES, globals())

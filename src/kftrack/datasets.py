@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["data_dir", "data_path", "data_files"]
+__all__ = ["data_dir", "data_path", "data_files", "load_script"]
 
 _PACKAGE_DATA = Path(__file__).resolve().parent / "data"
 _SOURCE_DATA = Path(__file__).resolve().parents[2] / "data"
@@ -58,3 +58,20 @@ def data_files() -> list[str]:
     folder = data_dir()
     return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
                   if p.is_file() and p.name != "README.md" and "__pycache__" not in p.parts)
+
+
+def load_script(name: str):
+    """A regeneration script shipped under ``data/`` (e.g. ``"adsb/baseline.py"``), imported as a
+    module without writing bytecode into the data folder."""
+    import importlib.util
+    import sys
+
+    path = data_path(name)
+    spec = importlib.util.spec_from_file_location(Path(name).stem, path)
+    mod = importlib.util.module_from_spec(spec)
+    old, sys.dont_write_bytecode = sys.dont_write_bytecode, True  # no __pycache__ inside data/
+    try:
+        spec.loader.exec_module(mod)
+    finally:
+        sys.dont_write_bytecode = old
+    return mod

@@ -9,19 +9,11 @@ Each module is imported on first use (``kftrack.sensors.radar`` after ``import k
 """
 from __future__ import annotations
 
-import importlib
+from .. import lazy_modules
 
 _MODULES = ("radar", "lidar", "gps", "ardrone")
 
 __all__ = sorted(_MODULES)
 
 
-def __getattr__(name: str):
-    """``kftrack.sensors.<module>``: import the module on first use (PEP 562)."""
-    if name in _MODULES:
-        return importlib.import_module(f"{__name__}.{name}")
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_modules(__name__, _MODULES, globals())  # kftrack.sensors.<module> on first use
