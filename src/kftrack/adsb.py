@@ -93,7 +93,7 @@ def category_of(name: str) -> str:
 
 
 def refuse_test_flights(flights, argname: str = "flights") -> None:
-    """Raise ValueError if any record of ``flights`` is a test flight (its ``name`` in :data:`TEST_FLIGHTS`).
+    """Raise ValueError if any record of ``flights`` is a test flight (its ``name`` in ``TEST_FLIGHTS``).
 
     Every tuning function of chapter 18 calls this at its boundary, so that nothing is fitted,
     scanned or chosen on the flights the methods are judged on. Records without a ``name`` (arrays

@@ -85,7 +85,7 @@ only the other coordinate is measured (idea 1 per coordinate).
 **Provenance of the constants.** :data:`Q_MODES`, :data:`SOJOURN_S`, :data:`TURN_DEG_S`,
 :data:`LAG_SCALE` and :data:`R_FLOOR` were chosen from a small scan of the one-step RMSE (the
 score issue 15 sets) on the chapter flights only, the training flights of the split
-(:data:`kftrack.adsb.TRAINING_FLIGHTS`; nothing on :data:`kftrack.adsb.TEST_FLIGHTS`), and so was
+(:data:`kftrack.adsb.TRAINING_FLIGHTS`; nothing on ``kftrack.adsb.TEST_FLIGHTS``), and so was
 the spike-hold rule (point 4, designed on ``featured/belevingsvlucht``). Their scores on the
 chapter flights are therefore in-sample; the test flights are scored by
 :func:`kftrack.flightscore.evaluate` against a CV filter tuned on the training flights
@@ -883,7 +883,7 @@ def fit_recipe(flights, x0=(Q_MODES[0], Q_MODES[1], LAG_SCALE, R_FLOOR), xatol: 
     Parameters
     ----------
     flights : sequence of :class:`kftrack.adsb.Flight`, as in :func:`innovation_loglik`; never a
-        test flight (:data:`kftrack.adsb.TEST_FLIGHTS`: ValueError).
+        test flight (``kftrack.adsb.TEST_FLIGHTS``: ValueError).
     x0 : four positive numbers, the start (default: the module's constants).
     xatol : positive, the tolerance in log units (1e-2: one per cent).
     maxiter : positive int, the most Nelder–Mead iterations.

@@ -35,7 +35,7 @@ covariances as read-only broadcast views of the one ``(T, n, n)`` sequence.
 
 **The missing-row pattern is static.** Whether the covariances can be shared is decided when
 the loop is built, so the pattern must be known then; it comes from the filter's ``missing=``
-argument (:func:`kftrack._validate.check_missing`): ``None`` (default) takes the rows of NaN of
+argument (``kftrack._validate.check_missing``): ``None`` (default) takes the rows of NaN of
 a concrete ``zs``; ``False`` says no measurement is missing; a concrete boolean array
 ``(T,)`` or ``(T, ...)`` marks the rows not to use. Inside the caller's ``jax.jit``,
 ``jax.grad`` or ``jax.vmap`` the values of ``zs`` are not known: with ``missing=None`` the
@@ -233,7 +233,7 @@ def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(),
     ----------
     zs, x0, P0, pred_args, pred_steps, upd_args, upd_steps : the arrays of :func:`run_sequence`,
         each checked (NumPy) or a :class:`Given` pair ``(caller's value, checked value)``.
-    gone : (T, ...) bool, the rows not to use (:func:`kftrack._validate.check_missing`), a
+    gone : (T, ...) bool, the rows not to use (``kftrack._validate.check_missing``), a
         concrete NumPy array; or None when only the trace knows them (an abstract ``zs`` with
         ``missing=None``): then ``isnan(zs).all(-1)`` of the caller's ``zs``, per run.
     batch : the batch shape of the means.

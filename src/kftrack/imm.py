@@ -95,7 +95,7 @@ class Mode(Protocol):
         Measurement update; returns ``u`` with ``u.x`` ``(..., n)``, ``u.P`` ``(..., n, n)`` and
         ``u.loglik`` ``(...)``, the log-likelihood :math:`\\log N(\\nu; 0, S)` of the innovation.
     predict_linearized(x, P, dt)
-        Optional, needed by :func:`imm_smoother` only: :meth:`predict`'s ``(x, P)`` and the
+        Optional, needed by :func:`imm_smoother` only: ``predict``'s ``(x, P)`` and the
         ``(..., n, n)`` transition matrix the backward pass uses (``F(dt)``, the Jacobian at ``x``,
         or a statistical linearization).
     """
