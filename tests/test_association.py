@@ -243,29 +243,89 @@ def test_jpda_event_count_is_exact():
 
 def test_jpda_guard_on_the_number_of_events():
     P, H, R = 10 * np.eye(4), H2, 4 * np.eye(2)
-    # 12 targets gating the same 12 measurements: sum_k C(12, k)^2 k! = 53 334 454 417 events
-    with pytest.raises(ValueError, match=r"5\.33e\+10 joint events .* 12 targets and 12 measurements.*max_events"):
-        asc.jpda_update(np.zeros((12, 4)), np.broadcast_to(P, (12, 4, 4)), np.zeros((12, 2)), H, R, P_D=0.9,
-                        P_G=0.99, clutter_density=1e-3)
-    # 30 x 30: the count stops early (a lower bound) once it passes max_events
+    one = dict(P_D=0.9, P_G=0.99, clutter_density=1e-3)
+    # 12 targets gating the same 12 measurements: sum_k C(12, k)^2 k! = 53 334 454 417 events, now
+    # within the subset programme (no error), which also counts them
+    j = asc.jpda_update(np.zeros((12, 4)), np.broadcast_to(P, (12, 4, 4)), np.zeros((12, 2)), H, R, **one)
+    assert j.n_events == 53_334_454_417
+    # 30 x 30: beyond the programme (> 16 measurements); the count stops early (a lower bound)
     with pytest.raises(ValueError, match=r"at least .* joint events .* 30 targets and 30 measurements"):
-        asc.jpda_update(np.zeros((30, 4)), np.broadcast_to(P, (30, 4, 4)), np.zeros((30, 2)), H, R, P_D=0.9,
-                        P_G=0.99, clutter_density=1e-3)
+        asc.jpda_update(np.zeros((30, 4)), np.broadcast_to(P, (30, 4, 4)), np.zeros((30, 2)), H, R, **one)
     # two groups of 6 targets and 6 measurements 1 km apart: two clusters of 13 327 events each
     # (sum_k C(6, k)^2 k!), while one unclustered enumeration would hold 13 327^2 of them
     xs = np.zeros((12, 4))
     xs[6:, 0] = 1000.0
     Z = xs[:, [0, 2]] + 0.1 * np.arange(12)[:, None]
-    j = asc.jpda_update(xs, np.broadcast_to(P, (12, 4, 4)), Z, H, R, P_D=0.9, P_G=0.99, clutter_density=1e-3)
+    j = asc.jpda_update(xs, np.broadcast_to(P, (12, 4, 4)), Z, H, R, **one)
     assert j.n_events == 2 * 13327
     np.testing.assert_allclose(j.beta.sum(-1), 1.0, rtol=0, atol=1e-13)
-    one = dict(P_D=0.9, P_G=0.99, clutter_density=1e-3)
-    asc.jpda_update(xs[:6], np.broadcast_to(P, (6, 4, 4)), Z[:6], H, R, max_events=13327, **one)
-    with pytest.raises(ValueError, match="13327"):
-        asc.jpda_update(xs[:6], np.broadcast_to(P, (6, 4, 4)), Z[:6], H, R, max_events=13326, **one)
+    # max_events bounds the enumeration of clusters beyond the programme: 2 targets sharing 25
+    # measurements have 1 + 2*25 + 25*24 = 651 events
+    Z25 = 0.1 * np.arange(50.0).reshape(25, 2)
+    x2, P2 = np.zeros((2, 4)), np.broadcast_to(P, (2, 4, 4))
+    assert asc.jpda_update(x2, P2, Z25, H, R, max_events=651, **one).n_events == 651
+    with pytest.raises(ValueError, match="651 joint events .* 2 targets and 25 measurements.*at most 16"):
+        asc.jpda_update(x2, P2, Z25, H, R, max_events=650, **one)
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match="max_events"):
             asc.jpda_update(xs[:2], np.broadcast_to(P, (2, 4, 4)), Z[:2], H, R, max_events=bad, **one)
+
+
+def _enumerated_marginals(W):
+    """Marginals of a cluster's weight table ``W`` (T, 1 + M) by listing every joint event."""
+    adj = tuple(tuple(int(j) for j in np.flatnonzero(W[t, 1:] > 0)) for t in range(len(W)))
+    ev = asc._cluster_events(adj)
+    w = np.prod(W[np.arange(len(W))[None, :], ev], axis=1)
+    beta = np.stack([np.bincount(ev[:, t], weights=w, minlength=W.shape[1]) for t in range(len(W))])
+    return beta / w.sum(), len(ev)
+
+
+def test_subset_programme_equals_the_enumeration():
+    # 300 random clusters (1-6 targets, 0-7 measurements, random gating, weights spread over 1e-6..1):
+    # every marginal is a ratio of sums of positive products, so both ways carry a relative
+    # round-off below (E + 4 T M) eps each for E events (E <= 7^6 ~ 1.2e5 here, but the bound is
+    # checked per case); the count equals the number of events listed.
+    rng = np.random.default_rng(28)
+    for _ in range(300):
+        T, M = int(rng.integers(1, 7)), int(rng.integers(0, 8))
+        W = np.exp(rng.uniform(np.log(1e-6), 0, size=(T, 1 + M)))
+        W[:, 1:] *= rng.random((T, M)) < 0.6
+        beta, count = asc._subset_marginals(W)
+        ref, E = _enumerated_marginals(W)
+        assert count == E
+        np.testing.assert_allclose(beta, ref, rtol=2 * (E + 4 * T * (M + 1)) * EPS, atol=0)
+
+
+def test_jpda_12_by_12_dense_cluster_has_the_closed_form_marginals():
+    # 12 targets at one point, 12 measurements at another (all gated): every target has the same
+    # weights (a missed, l any measurement), so with k targets assigned the events number
+    # C(12, k)^2 k! and beta_0 = sum_k (12 - k)/12 C(12,k)^2 k! l^k a^(12-k) / sum_k C(12,k)^2 k! l^k a^(12-k)
+    # (each target is missed in a fraction (12 - k)/12 of them); the rest splits equally over the 12.
+    from math import comb, factorial
+    P, H, R = 10 * np.eye(4), H2, 4 * np.eye(2)
+    Z = np.full((12, 2), 1.0)
+    j = asc.jpda_update(np.zeros((12, 4)), np.broadcast_to(P, (12, 4, 4)), Z, H, R, P_D=0.9, P_G=0.99,
+                        clutter_density=1e-3)
+    a = 1 - 0.9 * 0.99
+    l = 0.9 * np.exp(j.gate.logN[0, 0]) / 1e-3
+    terms = np.array([comb(12, k) ** 2 * factorial(k) * l**k * a ** (12 - k) for k in range(13)])
+    b0 = (terms * (12 - np.arange(13)) / 12).sum() / terms.sum()
+    # relative round-off of both sides: ~ 13 terms and 12 x 13 x 3 programme steps, below 1e-12
+    np.testing.assert_allclose(j.beta[:, 0], b0, rtol=1e-12)
+    np.testing.assert_allclose(j.beta[:, 1:], (1 - b0) / 12, rtol=1e-12)
+
+
+@pytest.mark.parametrize("seed, T", [(5, 4), (6, 5), (7, 4)])
+def test_jpda_large_cluster_equals_brute_force(seed, T):
+    # T targets sharing 6 measurements (events > 256: the subset programme) against the
+    # brute-force enumeration of the test module (rtol as in test_jpda_against_brute_force_and_pdaf)
+    rng = np.random.default_rng(seed)
+    x, P, H, R, Z = _random_case(rng, M=6)
+    xs = x + 0.3 * rng.normal(size=(T, 4))
+    Ps = np.stack([P] * T)
+    j = asc.jpda_update(xs, Ps, Z, H, R, P_D=0.9, P_G=0.999, clutter_density=0.02)
+    assert j.n_events > 256
+    np.testing.assert_allclose(j.beta, _brute_jpda_beta(xs, Ps, Z, H, R, 0.9, 0.999, 0.02), rtol=1e-12, atol=1e-15)
 
 
 def _brute_gnn(cost, gate, miss):
