@@ -12,7 +12,7 @@ from scipy import stats
 
 from ._validate import as_vector, check_covariance
 
-__all__ = ["use_book_style", "ellipse_points", "covariance_ellipse", "plot_track", "plot_band", "plot_chi2_band"]
+__all__ = ["use_book_style", "ellipse_points", "covariance_ellipse", "plot_track", "plot_tracks", "plot_band", "plot_chi2_band"]
 
 
 def use_book_style() -> None:
@@ -98,6 +98,44 @@ def plot_track(ax, truth=None, measurements=None, estimates=None, covariances=No
     ax.set_ylabel("y (m)")
     ax.set_aspect("equal", adjustable="datalim")
     ax.legend()
+    return ax
+
+
+def plot_tracks(ax, tracks, truth=None, *, tentative: bool = False, km: bool = True):
+    """Draw multi-target tracks over the truth: each track's confirmed part as a coloured line
+    (its id at the start), the true paths as thin grey lines.
+
+    Parameters
+    ----------
+    tracks : :class:`kftrack.multitarget.Tracks` (or any iterable of tracks with ``x`` (k, 4)
+        ``[x, vx, y, vy]``, ``confirmed`` (k,) and ``id``).
+    truth : optional true paths: a mapping ``{name: (k, 2)}`` or a sequence of ``(k, 2)`` arrays
+        of positions in metres.
+    tentative : also draw the tentative rows (dotted).
+    km : axes in kilometres (default) or metres.
+    """
+    s = 1e-3 if km else 1.0
+    if truth is not None:
+        paths = truth.values() if hasattr(truth, "values") else truth
+        for k, p in enumerate(paths):
+            p = np.asarray(p, dtype=float).reshape(-1, 2)
+            ax.plot(s * p[:, 0], s * p[:, 1], color="0.6", lw=0.8, label="truth" if k == 0 else None)
+    first = True
+    for k, tr in enumerate(tracks):
+        x, c = np.asarray(tr.x), np.asarray(tr.confirmed, dtype=bool)
+        color = f"C{k % 10}"
+        if tentative and (~c).any():
+            ax.plot(s * x[~c, 0], s * x[~c, 2], ":", color=color, lw=0.8)
+        if c.any():
+            ax.plot(s * x[c, 0], s * x[c, 2], color=color, lw=1.2, label="confirmed tracks" if first else None)
+            i = int(np.argmax(c))
+            ax.annotate(str(tr.id), (s * x[i, 0], s * x[i, 2]), fontsize=7, color=color)
+            first = False
+    unit = "km" if km else "m"
+    ax.set_xlabel(f"east ({unit})")
+    ax.set_ylabel(f"north ({unit})")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(loc="best", fontsize=8)
     return ax
 
 
