@@ -96,11 +96,64 @@ def test_log_ratio_is_the_t_interval_of_the_mean_log_ratio_reported_as_a_ratio()
     assert unpaired.p_value == pytest.approx(stats.ttest_ind(np.log(a), np.log(b), equal_var=False).pvalue, rel=1e-10)
 
 
-def test_runs_without_spread_are_decided_without_dividing_by_zero():
-    same = compare_runs([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], margin=0.1)
-    assert same.se == 0 and same.p_value == 1 and same.verdict == "equivalent within ±0.1"
+# ------------------------------------------------------------------------------------------
+# no spread: every paired difference the same (identical runs), known exactly
+# ------------------------------------------------------------------------------------------
+def test_identical_runs_are_equal_exactly_not_a_zero_width_interval():
+    for margin in (None, 0.1):
+        same = compare_runs([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], margin=margin)
+        assert same.exact and same.verdict == "equal" and same.kind == "equal"
+        assert same.se == 0 and same.mde == 0 and same.ci == (0.0, 0.0) and same.p_value == 1
+        assert same.equivalent is (None if margin is None else True)
+        assert str(same) == ("A's value equals B's (on each of the 3 paired runs, to round-off: "
+                             "no interval to compute): equal")
+    ratio = compare_runs([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], scale="log_ratio")
+    assert ratio.exact and ratio.verdict == "equal" and ratio.estimate == 1.0 and ratio.ci == (1.0, 1.0)
+
+
+def test_a_constant_difference_is_lower_or_higher_exactly():
     shifted = compare_runs([2.0, 3.0, 4.0], [1.0, 2.0, 3.0])
-    assert shifted.p_value == 0 and shifted.verdict == "higher"
+    assert shifted.exact and shifted.p_value == 0 and shifted.verdict == "higher"
+    assert shifted.estimate == 1.0 and shifted.ci == (1.0, 1.0) and shifted.se == 0
+    assert shifted.sentence(unit="m") == ("A's value minus B's is 1 m (the same difference on each of the 3 paired "
+                                          "runs, to round-off: no interval to compute): higher")
+    inside = compare_runs([2.0, 3.0, 4.0], [1.0, 2.0, 3.0], margin=1.5)
+    outside = compare_runs([2.0, 3.0, 4.0], [1.0, 2.0, 3.0], margin=0.5)
+    assert inside.equivalent is True and inside.verdict == "higher" and str(inside).endswith("higher, within ±1.5")
+    assert outside.equivalent is False and str(outside).endswith("): higher")
+    b = np.array([1.0, 1.2, 0.9, 1.1])
+    lower = compare_runs(0.9 * b, b, scale="log_ratio")
+    assert lower.exact and lower.verdict == "lower" and lower.estimate == pytest.approx(0.9, rel=RTOL)
+    assert lower.sentence("A", "B", "RMSE") == ("A's RMSE is 0.9× B's (the same ratio on each of the 4 paired runs, "
+                                                "to round-off: no interval to compute): lower")
+    unpaired = compare_runs([2.0, 2.0, 2.0], [1.0, 1.0, 1.0, 1.0], paired=False)
+    assert unpaired.exact and unpaired.verdict == "higher" and unpaired.estimate == 1.0
+    assert "3 + 4 unpaired runs, each method the same value on every run" in str(unpaired)
+
+
+def test_round_off_spread_counts_as_none_and_more_than_round_off_does_not():
+    b = np.array([0.3, 1.7, 2.9, 10.1, 0.01])
+    a = b + 0.1  # d = 0.1 up to the rounding of each sum: spread ~ eps * 10
+    spread = np.ptp(a - b)
+    assert 0 < spread < 64 * np.finfo(float).eps * 10.1  # the case is the one meant: real round-off spread
+    r = compare_runs(a, b)
+    assert r.exact and r.verdict == "higher" and "is 0.1 (the same difference" in str(r)
+    twin = compare_runs(b * (1 + 2 * np.finfo(float).eps), b)  # a difference of round-off size is 0
+    assert twin.exact and twin.verdict == "equal" and twin.estimate == 0
+    # a spread of 1e-9, far above the round-off bound (64 eps * 10 = 1.4e-13), is noise to test against
+    noisy = compare_runs(b + 0.1 + 1e-9 * _standardised(5), b)
+    assert not noisy.exact and noisy.se > 0 and noisy.verdict == "higher" and "95 % CI" in str(noisy)
+
+
+def test_exact_results_keep_their_verdict_in_holm_and_sweeps():
+    exact = compare_runs([2.0, 3.0, 4.0], [1.0, 2.0, 3.0])
+    equal = compare_runs([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], margin=0.1)
+    noisy = compare_runs([1.0, 2.0, 3.0], [1.5, 2.0, 2.0])
+    family = holm([exact, equal, noisy])
+    assert [r.verdict for r in family] == ["higher", "equal", "not resolved by 3 runs"]
+    assert all(r.tests == 4 for r in family) and family[1].equivalent is True
+    sw = compare_sweep([0.0, 1.0], lambda s: (np.array([1.0, 2.0, 3.0]) - s, np.array([1.0, 2.0, 3.0])))
+    assert [r.kind for r in sw.results] == ["equal", "lower"] and sw.flips == ((0.0, 1.0),)
 
 
 def test_result_is_immutable():

@@ -55,6 +55,12 @@ __all__ = ["ComparisonResult", "compare_runs", "HolmResult", "holm", "Sweep", "c
 
 _SCALES = ("difference", "log_ratio")
 _POWER = 0.8  # the power at which the minimal detectable effect is stated
+# Round-off bound for "no spread": per-run values that differ only by round-off. Each value
+# (and its logarithm) carries a relative error of at most a few dozen roundings of eps/2 from
+# the code that made it, and the subtraction one more, so differences identical in exact
+# arithmetic spread by less than 64 * eps * (largest |value| on the analysis scale, at least 1
+# for logarithms); anything wider is treated as real spread and goes through the t test.
+_ROUNDOFF = 64 * float(np.finfo(float).eps)
 
 
 @dataclass(frozen=True)
@@ -79,7 +85,8 @@ class ComparisonResult:
     mde : minimal detectable effect at 80 % power, on the analysis scale,
         :math:`(t_{1-\alpha/2,\nu} + t_{0.8,\nu})\,\mathrm{se}` (see :func:`compare_runs`).
     verdict : ``"lower"``, ``"higher"``, ``"equivalent within ±m"`` or
-        ``"not resolved by N runs"`` (``"N + M runs"`` unpaired).
+        ``"not resolved by N runs"`` (``"N + M runs"`` unpaired); ``"equal"`` only when
+        ``exact``.
     delta : the estimate on the analysis scale (difference, or mean log ratio).
     df : degrees of freedom :math:`\nu` of the t distribution (``n - 1`` paired; Welch).
     level : confidence level, :math:`1 - \alpha`.
@@ -95,6 +102,13 @@ class ComparisonResult:
     tests : number of tests in the Holm family (1: not adjusted, see :func:`holm`).
     p_adjusted, p_equivalence_adjusted : Holm-adjusted p-values (equal to the raw ones when
         ``tests == 1``); the verdict is computed from these.
+    exact : the runs show no spread beyond round-off (paired: every run gives the same
+        difference; unpaired: every run of each method gives the same value), so the
+        difference on these runs is known exactly: ``se = mde = 0``, ``ci = (estimate,
+        estimate)``, ``p_value`` 0 (or 1 when the difference is 0) and the verdict
+        ``"lower"``, ``"higher"`` or ``"equal"`` (an exact verdict, not a test's).
+    tolerance : the round-off bound on the analysis scale under which spread counts as none
+        (and a difference as 0), ``64 eps`` times the largest value (see :func:`compare_runs`).
     """
 
     estimate: float
@@ -116,6 +130,8 @@ class ComparisonResult:
     tests: int
     p_adjusted: float
     p_equivalence_adjusted: float | None
+    exact: bool = False
+    tolerance: float = 0.0
 
     @property
     def n(self) -> int:
@@ -124,8 +140,9 @@ class ComparisonResult:
 
     @property
     def kind(self) -> str:
-        """The verdict without its numbers: ``"lower"``, ``"higher"``, ``"equivalent"`` or
-        ``"not resolved"`` (for asserts and for :func:`compare_sweep`'s flips)."""
+        """The verdict without its numbers: ``"lower"``, ``"higher"``, ``"equivalent"``,
+        ``"not resolved"`` or (exact results only) ``"equal"`` (for asserts and for
+        :func:`compare_sweep`'s flips)."""
         return self.verdict.split(" within")[0].split(" by")[0]
 
     def sentence(self, name_a: str = "A", name_b: str = "B", quantity: str = "value", unit: str = "") -> str:
@@ -145,6 +162,8 @@ class ComparisonResult:
         unit : unit of a difference (``"m"``); unused for a ratio.
         """
         ratio = self.scale == "log_ratio"
+        if self.exact:
+            return self._exact_sentence(name_a, name_b, quantity, unit)
         se = self.se * self.estimate if ratio else self.se
         u = f" {unit}" if unit and not ratio else ""
         ref = 1.0 if ratio else 0.0
@@ -168,6 +187,28 @@ class ComparisonResult:
         elif self.equivalent:
             word += f", yet equivalent within ±{_margin_text(self.margin, ratio)}{u}"
         return f"{head} ({where}): {word}"
+
+    def _exact_sentence(self, name_a: str, name_b: str, quantity: str, unit: str) -> str:
+        """The sentence of an exact result: the difference on every run, no interval."""
+        ratio = self.scale == "log_ratio"
+        u = f" {unit}" if unit and not ratio else ""
+        runs = (f"each of the {self.n_a} paired runs" if self.paired
+                else f"{self.n_a} + {self.n_b} unpaired runs, each method the same value on every run")
+        what = "ratio" if ratio else "difference"
+        if self.kind == "equal":
+            head = f"{name_a}'s {quantity} equals {name_b}'s"
+            why = f"{'on ' if self.paired else ''}{runs}, to round-off: no interval to compute"
+        else:
+            tol = self.tolerance * self.estimate if ratio else self.tolerance
+            est = _fmt_exact(self.estimate, tol)
+            head = (f"{name_a}'s {quantity} is {est}× {name_b}'s" if ratio
+                    else f"{name_a}'s {quantity} minus {name_b}'s is {est}{u}")
+            why = (f"the same {what} on {runs}, to round-off: no interval to compute" if self.paired
+                   else f"{runs}, to round-off: no interval to compute")
+        word = self.verdict
+        if self.margin is not None and self.equivalent and self.kind != "equal":
+            word += f", within ±{_margin_text(self.margin, ratio)}{u}"
+        return f"{head} ({why}): {word}"
 
     def __str__(self) -> str:
         return self.sentence()
@@ -212,6 +253,18 @@ def compare_runs(a, b, *, paired: bool = True, scale: str = "difference", level:
     claim fixed before the runs is the two-sided one at ``level = 1 - 2*alpha_one_sided``:
     say so on the page.
 
+    No spread (``exact=True``): when every paired difference is the same up to round-off
+    (unpaired: every value of ``a`` the same and every value of ``b`` the same), there is no
+    run-to-run noise to test against: the difference on these runs is known exactly. The
+    result then says so instead of printing a zero-width interval: ``se = mde = 0``,
+    ``ci = (estimate, estimate)``, and the verdict ``"lower"``, ``"higher"`` or, when the
+    difference is itself within round-off of 0, ``"equal"`` (TOST, when a margin is given,
+    is decided exactly: equivalent when the difference lies inside the region). The
+    round-off bound is :math:`64\,\varepsilon \max(|g(a)|, |g(b)|)` (at least
+    :math:`64\,\varepsilon` for ``log_ratio``): the spread of differences that are identical in
+    exact arithmetic but computed through a few dozen roundings. The claim is about the runs
+    given ("on each of the N runs"), as every verdict is.
+
     Parameters
     ----------
     a, b : (N,) and (M,) finite per-run values of the two methods, one value per run (1-D; a
@@ -243,6 +296,11 @@ def compare_runs(a, b, *, paired: bool = True, scale: str = "difference", level:
     >>> r.verdict, r.n, round(r.estimate, 2)
     ('lower', 8, 0.9)
 
+    Identical runs give an exact verdict, not a zero-width interval:
+
+    >>> print(compare_runs(b, b.copy(), scale="log_ratio").sentence("A", "B", "RMSE"))
+    A's RMSE equals B's (on each of the 8 paired runs, to round-off: no interval to compute): equal
+
     Four runs cannot resolve a 1 % difference buried in 10 % noise; the sentence says what
     they could have detected:
 
@@ -270,14 +328,21 @@ def compare_runs(a, b, *, paired: bool = True, scale: str = "difference", level:
                              f"got {level!r}")
         margin = m
     x, y = (np.log(a), np.log(b)) if log else (a, b)
+    tol = _ROUNDOFF * max(float(np.abs(x).max()), float(np.abs(y).max()), 1.0 if log else 0.0)
     if paired:
         d = x - y
         n = d.size
+        exact = bool(np.ptp(d) <= tol)
         delta, se, df = float(d.mean()), float(d.std(ddof=1) / math.sqrt(n)), float(n - 1)
     else:
+        exact = bool(np.ptp(x) <= tol and np.ptp(y) <= tol)
         va, vb = float(x.var(ddof=1)) / x.size, float(y.var(ddof=1)) / y.size
         delta, se = float(x.mean() - y.mean()), math.sqrt(va + vb)
         df = (va + vb) ** 2 / (va**2 / (x.size - 1) + vb**2 / (y.size - 1)) if se > 0 else float(x.size + y.size - 2)
+    if exact:  # no spread beyond round-off: the difference on these runs is known exactly
+        se = 0.0
+        if abs(delta) <= tol:
+            delta = 0.0
     alpha = 1.0 - level
     tc, tp = stats.t.ppf([1.0 - alpha / 2, _POWER], df).tolist()
     lo, hi = delta - tc * se, delta + tc * se
@@ -298,7 +363,7 @@ def compare_runs(a, b, *, paired: bool = True, scale: str = "difference", level:
     ci = (math.exp(lo), math.exp(hi)) if log else (lo, hi)
     est = math.exp(delta) if log else delta
     return _decide(ComparisonResult(est, ci, se, p, mde, "", delta, df, level, int(a.size), int(b.size), bool(paired),
-                                    scale, margin, None, p_eq, 1, p, p_eq))
+                                    scale, margin, None, p_eq, 1, p, p_eq, exact, tol))
 
 
 class HolmResult(NamedTuple):
@@ -438,7 +503,10 @@ def _decide(r: ComparisonResult) -> ComparisonResult:
     """Verdict of ``r`` from its (possibly Holm-adjusted) p-values."""
     alpha = 1.0 - r.level
     equivalent = None if r.margin is None else bool(r.p_equivalence_adjusted < alpha)
-    if r.p_adjusted < alpha:
+    if r.exact:  # known exactly, not tested: Holm's adjustment cannot change the verdict
+        equivalent = None if r.margin is None else bool(r.p_equivalence == 0.0)
+        verdict = "equal" if r.delta == 0 else ("lower" if r.delta < 0 else "higher")
+    elif r.p_adjusted < alpha:
         verdict = "lower" if r.delta < 0 else "higher"
     elif equivalent:
         verdict = f"equivalent within ±{_margin_text(r.margin, r.scale == 'log_ratio')}"
@@ -505,6 +573,13 @@ def _fmt(x: float, se: float, ref: float | None = None) -> str:
             break
         s = _round_text(x, d + extra)
     return s
+
+
+def _fmt_exact(x: float, tol: float) -> str:
+    """``x`` to 6 significant digits, none of them below the round-off bound ``tol``."""
+    if tol > 0:
+        x = round(x, _decimals(tol) - 1)
+    return f"{x + 0.0:.6g}"
 
 
 def _sig2(x: float) -> str:
