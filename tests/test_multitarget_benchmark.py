@@ -1,0 +1,125 @@
+"""Issue 28: benchmarks/multitarget.py (kftrack against Stone Soup on radar scans of real traffic)
+regenerates the committed data/multitarget/benchmark.json: its quick figures, its structure, and
+the summary figures follow from the stored per-run values."""
+from __future__ import annotations
+
+import datetime
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("multitarget_bench", ROOT / "benchmarks" / "multitarget.py")
+    mod = importlib.util.module_from_spec(spec)
+    old, sys.dont_write_bytecode = sys.dont_write_bytecode, True
+    try:
+        spec.loader.exec_module(mod)
+    finally:
+        sys.dont_write_bytecode = old
+    return mod
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return _bench()
+
+
+@pytest.fixture(scope="module")
+def stored():
+    return json.loads((ROOT / "data" / "multitarget" / "benchmark.json").read_text())
+
+
+# ---------------------------------------------------------------- the peer's models are kftrack's
+def test_stonesoup_models_equal_kftrack_models(bench):
+    # Same F, Q (continuous white-acceleration PSD q per axis) and h, with the measurement order
+    # swapped; closed forms of O(1e4) numbers: agreement to 1e-9 relative.
+    from stonesoup.types.state import State
+
+    from kftrack.models import ConstantVelocity
+    from kftrack.sensors.radar import RangeBearing
+
+    radar = RangeBearing(sigmas=(50.0, np.deg2rad(0.1)))
+    trans, meas = bench.stonesoup_models(radar, q=5.0)
+    cv = ConstantVelocity(ndim=2, q=5.0)
+    for dt in (0.7, 4.8, 30.0):
+        td = datetime.timedelta(seconds=dt)
+        np.testing.assert_allclose(trans.matrix(time_interval=td), cv.F(dt), rtol=1e-12, atol=0)
+        np.testing.assert_allclose(trans.covar(time_interval=td), cv.Q(dt), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(np.asarray(meas.covar(), float), np.diag(np.square(radar.sigmas))[::-1, ::-1])
+    x = np.array([-30e3, 120.0, 4e3, -80.0])   # west of the radar: bearing near pi
+    z_ss = np.asarray(meas.function(State(x.reshape(4, 1))), float).ravel()
+    np.testing.assert_allclose(z_ss[::-1], radar.h(x), rtol=1e-12)
+
+
+def test_detections_carry_their_own_times(bench):
+    from kftrack.sensors.surveillance import Scan
+    from kftrack.sensors.radar import RangeBearing
+
+    _, meas = bench.stonesoup_models(RangeBearing(sigmas=(50.0, 0.002)), q=1.0)
+    scan = Scan(10.0, np.array([10.5, 12.25]), np.array([[20e3, 0.3], [40e3, -3.0]]), np.array([0, -1]))
+    dets = bench.stonesoup_detections(scan, meas)
+    assert [bench._seconds(d.timestamp) for d in dets] == [10.5, 12.25]
+    assert [float(d.state_vector[1, 0]) for d in dets] == [20e3, 40e3]      # (bearing, range) order
+    np.testing.assert_allclose([d.metadata["txyr"][1] for d in dets], [20e3 * np.cos(0.3), 40e3 * np.cos(-3.0)])
+
+
+# ---------------------------------------------------------------- the committed file
+def test_quick_figures_reproduce(bench, stored):
+    # The reduced run (two paired runs of a few scans, all three methods, and the aligned runs) is
+    # deterministic: seeded scans, no timing in it. Same code, same numbers: GOSPA sums over a few
+    # dozen targets of O(1e3) m, so round-off of another BLAS stays below 1e-6 relative.
+    window, radar, cfg = bench.setup()
+    got = json.loads(json.dumps(bench.quick_figures(window, radar, cfg), default=float))
+    want = stored["quick"]
+    assert got["mode"] == want["mode"]
+
+    def close(a, b, path):
+        if isinstance(b, dict):
+            assert set(a) == set(b), path
+            for k in b:
+                close(a[k], b[k], f"{path}/{k}")
+        elif isinstance(b, list):
+            assert len(a) == len(b), path
+            for i, (x, y) in enumerate(zip(a, b)):
+                close(x, y, f"{path}[{i}]")
+        elif isinstance(b, float):
+            assert a == pytest.approx(b, rel=1e-6, abs=1e-6), path
+        else:
+            assert a == b, path
+
+    close(got, want, "quick")
+
+
+def test_stored_structure_and_summaries(bench, stored):
+    for key in ("settings", "radar", "gospa", "quick", "runs", "timeline", "comparison", "aligned", "pregate",
+                "scaling", "jpda_12x12", "provenance"):
+        assert key in stored, key
+    prov = stored["provenance"]
+    assert prov["stonesoup"] == __import__("stonesoup").__version__
+    for k in ("date_utc", "kftrack", "numpy", "load_average_before", "load_average_after", "cpus"):
+        assert k in prov
+    # the comparison follows from the stored per-run values (same function)
+    again = json.loads(json.dumps(bench.compare(stored["runs"]), default=float))
+    for m, v in stored["comparison"].items():
+        for k, w in v.items():
+            if isinstance(w, float):
+                assert again[m][k] == pytest.approx(w, rel=1e-9), (m, k)
+            else:
+                assert again[m][k] == w, (m, k)
+    # the fitted exponent follows from the stored rows
+    rows = stored["scaling"]["rows"]
+    lx = np.log([r["N"] for r in rows])
+    for m, b in stored["scaling"]["exponent"].items():
+        assert np.polyfit(lx, np.log([r[m] for r in rows]), 1)[0] == pytest.approx(b, rel=1e-9)
+    # the pre-gate changed no track state (it only drops pairs the gate would reject)
+    for m, v in stored["pregate"].items():
+        assert v["max_state_difference"] == 0.0, m
+    # the committed table is the one the stored figures give
+    assert bench.markdown(stored) == (ROOT / "benchmarks" / "multitarget.md").read_text()
