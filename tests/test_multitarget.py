@@ -459,3 +459,109 @@ def test_plot_tracks_draws_confirmed_tracks_over_truth(cluttered):
     first = next(t for t in tr if t.confirmed.any())
     np.testing.assert_allclose(line.get_xdata(), 1e-3 * first.x[first.confirmed, 0])
     plt.close(fig)
+
+
+# --------------------------------------------------------------------------------------------
+# IMM modes per track
+# --------------------------------------------------------------------------------------------
+def _imm_cv_ct(Pi=((0.95, 0.05), (0.05, 0.95))):
+    from kftrack.imm import IMM, EKFMode
+    from kftrack.models import CoordinatedTurn
+    ekf = dict(h=RADAR.h, H_jac=RADAR.jacobian, angle_components=(1,))
+    return IMM([EKFMode(CV, RADAR.R, **ekf), EKFMode(CoordinatedTurn(ndim=2, q=1.0, q_omega=1e-4), RADAR.R, **ekf)],
+               transition=np.array(Pi), mu0=[0.8, 0.2], components=[(0, 1, 2, 3), (0, 1, 2, 3, 4)])
+
+
+@pytest.mark.parametrize("method", ["gnn", "jpda"])
+def test_imm_single_target_equals_imm_filter(method):
+    from kftrack.imm import imm_filter
+    scans, x0 = single_target_scans()
+    est = _imm_cv_ct()
+    x0 = np.append(x0, 0.0)
+    P0 = np.diag([100.0**2, 20.0**2, 100.0**2, 20.0**2, 0.02**2])
+    # no clutter: P_G = 1 - 1e-9 keeps every detection in the gate; JPDA's clutter density 1e-30
+    # makes beta_0 < 1e-30 / N (N ~ 1e-4 per m rad here): the PDAF is the Kalman update to 1e-20
+    tr = track_scans(scans, method=method, sensor=RADAR, motion=est, P_D=1.0, clutter_density=1e-30,
+                     P_G=1 - 1e-9, initiate=False, initial_tracks=[(0.0, x0, P0)])
+    times = np.concatenate([[0.0], [s.times[0] for s in scans]])
+    zs = np.concatenate([np.full((1, 2), np.nan), [s.z[0] for s in scans]])
+    ref = imm_filter(est, zs, x0, P0, times=times)
+    t = tr.tracks[0]
+    assert len(tr) == 1 and np.array_equal(t.times, times[1:])
+    # the same kernels per mode; only batch shapes (an array dt, per-track rows) may change the
+    # summation order: round-off of a few eps per operation over 30 contracting steps (1e-10, as
+    # the EKF test above)
+    np.testing.assert_allclose(t.x, ref.x[1:, :4], rtol=1e-10, atol=1e-10 * np.abs(ref.x).max())
+    np.testing.assert_allclose(t.P, ref.P[1:, :4, :4], rtol=1e-10, atol=1e-10 * np.abs(ref.P).max())
+    np.testing.assert_allclose(tr.mu[t.id], ref.mu[1:], rtol=1e-9, atol=1e-12)
+    assert ref.mu[1:, 1].max() > 0.2 > 0.1 > ref.mu[1:, 1].min()  # the modes' weights move: the mixing matters
+
+
+@pytest.mark.parametrize("method", ["gnn", "jpda"])
+@pytest.mark.parametrize("kind", ["kalman", "ekf"])
+def test_imm_with_one_mode_equals_plain_tracker(cluttered, method, kind):
+    from kftrack.imm import IMM, EKFMode, KalmanMode
+    scans, _, lam = cluttered
+    mode = KalmanMode(CV, RADAR.R) if kind == "kalman" else EKFMode(CV, RADAR.R, h=RADAR.h, H_jac=RADAR.jacobian,
+                                                                     angle_components=(1,))
+    kw = dict(method=method, sensor=RADAR, P_D=0.9, clutter_density=lam)
+    plain = track_scans(scans, motion=CV, **kw)
+    imm = track_scans(scans, motion=IMM([mode], transition=np.eye(1), mu0=[1.0]), **kw)
+    assert [t.id for t in imm] == [t.id for t in plain] and imm.ends == plain.ends and len(plain) > 12
+    for a, b in zip(imm, plain):
+        assert np.array_equal(a.times, b.times) and np.array_equal(a.confirmed, b.confirmed)
+        # one mode: mixing and combination with weight 1 are exact; the GNN cost -2 log L - m log 2 pi
+        # equals d^2 + log|S| to round-off (1e-12 relative), so the same decisions and round-off only
+        np.testing.assert_allclose(a.x, b.x, rtol=1e-9, atol=1e-9 * np.abs(b.x).max())
+        np.testing.assert_allclose(a.P, b.P, rtol=1e-9, atol=1e-9 * np.abs(b.P).max())
+        assert np.array_equal(imm.mu[a.id], np.ones((len(a.times), 1)))
+
+
+@pytest.mark.parametrize("method", ["gnn", "jpda"])
+def test_imm_tracks_every_target_and_mode_probabilities(cluttered, method):
+    scans, truths, lam = cluttered
+    trk = MultiTargetTracker(method=method, sensor=RADAR, motion=_imm_cv_ct(), P_D=0.9, clutter_density=lam)
+    for s in scans:
+        trk.step(s)
+    ids, mu = trk.mode_probabilities
+    np.testing.assert_allclose(mu.sum(1), 1.0, rtol=1e-12)
+    tr = trk.tracks()
+    ids, x = tr.snapshot(scans[-1].time)
+    D = np.linalg.norm(truths[-1][:, None] - x[None, :, [0, 2]], axis=-1)
+    assert (D.min(1) < 1000.0).all() and len(ids) == len(truths[-1])  # every straight-line target held, no false track
+    # straight lines: the CV mode dominates the confirmed tracks at the end
+    assert np.median([tr.mu[i][-1, 0] for i in ids]) > 0.5
+    with pytest.raises(ValueError, match="mode_probabilities"):
+        MultiTargetTracker(sensor=RADAR, motion=CV, P_D=0.9).mode_probabilities
+
+
+@pytest.mark.parametrize("max_events", [10, 10_000])
+def test_imm_with_one_mode_equals_plain_jpda_on_a_cluster(max_events):
+    # the IMM cluster path (marginals from the combined predictions, each mode in PDA form with
+    # them): with one mode it is the plain cluster JPDA, exact (10 000) or cheap (10: 73 events)
+    from kftrack.imm import IMM, KalmanMode
+    sensor = PositionSensor(15.0)
+    x0 = np.array([[0.0, 0.0, 0.0, 0.0], [10.0, 0.0, 0.0, 0.0], [0.0, 0.0, 10.0, 0.0]])
+    P0 = np.diag([30.0**2, 1.0, 30.0**2, 1.0])
+    Z = np.array([[0.0, 0.0], [5.0, 5.0], [10.0, 0.0], [0.0, 10.0]])
+    kw = dict(method="jpda", sensor=sensor, P_D=0.9, clutter_density=1e-4, initiate=False,
+              initial_tracks=[(0.0, x, P0) for x in x0], max_events=max_events)
+    plain = MultiTargetTracker(motion=CV, **kw)
+    imm = MultiTargetTracker(motion=IMM([KalmanMode(CV, sensor.R)], transition=np.eye(1), mu0=[1.0]), **kw)
+    a, b = plain.step(Scan(1.0, np.ones(4), Z)), imm.step(Scan(1.0, np.ones(4), Z))
+    assert plain.fallbacks == imm.fallbacks == (1 if max_events == 10 else 0)
+    # the same marginals and PDA combination; weight-1 mixing and combination are exact: round-off
+    np.testing.assert_allclose([s.x for s in b], [s.x for s in a], rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose([s.P for s in b], [s.P for s in a], rtol=1e-12, atol=1e-9)
+
+
+def test_imm_bad_input():
+    from kftrack.imm import IMM, KalmanMode
+    good = dict(sensor=RADAR, P_D=0.9, clutter_density=1e-6)
+    one_d = IMM([KalmanMode(ConstantVelocity(ndim=1, q=1.0), np.eye(1))], transition=np.eye(1), mu0=[1.0])
+    with pytest.raises(ValueError, match=r"motion.*N >= 4.*N = 2"):
+        MultiTargetTracker(motion=one_d, **good)
+    with pytest.raises(ValueError, match="turn_rate_std"):
+        MultiTargetTracker(motion=_imm_cv_ct(), turn_rate_std=0.0, **good)
+    with pytest.raises(ValueError, match=r"initial_tracks\[0\].*x \(5,\).*shape \(3,\)"):
+        MultiTargetTracker(motion=_imm_cv_ct(), initial_tracks=[(0.0, np.zeros(3), np.eye(3))], **good)

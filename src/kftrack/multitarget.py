@@ -51,8 +51,15 @@ near one target share its azimuth and hence nearly its time (a gate of a few ten
 a few milliseconds of a 4 s scan), so the approximation costs far less than the noise. A track
 with no detection in its gate keeps its prediction at the scan's mean detection time.
 
-Python loops run over the births of a scan and the multi-target JPDA clusters only; the cost per
-scan grows with the number of tracks and detections through vectorised array operations.
+**IMM modes per track** (``motion`` a :class:`kftrack.imm.IMM`, e.g. constant velocity and
+coordinated turn): see :class:`MultiTargetTracker`.
+
+Python loops run over the multi-target JPDA clusters (and an IMM's modes) only; the cost per
+scan grows with the number of tracks and detections through vectorised array operations. The
+arguments are checked once, at construction (and each scan's arrays as it arrives); the per-scan
+work then calls the unchecked kernels (:mod:`kftrack.kernels`, the generated functions of a
+``RangeBearing`` sensor and a ``ConstantVelocity`` model, the private PDAF pieces of
+:mod:`kftrack.association`), which give the same bits as the checked public calls.
 """
 from __future__ import annotations
 
@@ -66,8 +73,11 @@ from scipy.spatial import cKDTree
 
 from . import association as _assoc
 from . import kernels as _k
+from . import models as _models
 from ._validate import as_float_array
-from .trackmanagement import m_of_n_confirm, score_increment, sprt_thresholds, two_point_initiation
+from .engines import PerDt
+from .sensors import radar as _radar
+from .trackmanagement import m_of_n_confirm, score_increment, sprt_thresholds
 
 __all__ = ["TrackState", "Track", "Tracks", "MultiTargetTracker", "track_scans"]
 
@@ -107,6 +117,8 @@ class Tracks:
     seconds : (K,) wall-clock time of each scan's step (s).
     motion : the motion model (``F(dt)``, ``Q(dt)``), needed by :meth:`snapshot`.
     steps : the GM-PHD intensities (list of :class:`kftrack.phd.PHDStep`) with ``method="phd"``.
+    mu : with an IMM ``motion``, dict id -> (k, r) mode probabilities of the track after each of
+        its rows (None otherwise; not written by :meth:`to_csv`).
     """
 
     def __init__(self, tracks, ends, motion=None, fallbacks: int = 0, seconds=()):
@@ -116,6 +128,7 @@ class Tracks:
         self.fallbacks = int(fallbacks)
         self.seconds = np.asarray(seconds, dtype=float)
         self.steps = None
+        self.mu = None
         self._rows = None
 
     def __len__(self) -> int:
@@ -209,6 +222,47 @@ def _check_sensor(sensor):
     return R, tuple(getattr(sensor, "angle_components", ()))
 
 
+def _check_imm(est, turn_rate_std):
+    """An :class:`kftrack.imm.IMM` as the motion: common state ``[x, vx, y, vy(, extra...)]``."""
+    for attr in ("modes", "components", "N", "mu0", "_mix", "_combine", "_mixing_weights"):
+        if not hasattr(est, attr):
+            raise TypeError(f"motion must be a motion model with F(dt), Q(dt) or a kftrack.imm.IMM, got "
+                            f"{type(est).__name__} without {attr!r}")
+    if est.N < 4:
+        raise ValueError(f"motion (an IMM) must have the common state [x, vx, y, vy, ...] (N >= 4), got N = {est.N}")
+    for j, mode in enumerate(est.modes):
+        if not callable(getattr(mode, "predict", None)):
+            raise TypeError(f"motion.modes[{j}] must have predict(x, P, dt), got {type(mode).__name__}")
+    std = _positive(turn_rate_std, "turn_rate_std", "prior standard deviation of the extra IMM state components")
+    Pi = est.transition(1.0)
+    # a fixed (r, r) matrix is shared by every track; a callable Pi(dt) is evaluated per track
+    return std, (None if isinstance(getattr(est, "_transition", None), PerDt) else Pi)
+
+
+def _imm_growth(est, cv):
+    """``dt -> (F, Q)`` for the coarse test's covariance growth with an IMM: the constant-velocity
+    ``F`` and the sum of the modes' ``Q(dt)`` on ``[x, vx, y, vy]`` (at least any one mode's)."""
+    def FQ(dt):
+        F, Q = cv(dt)
+        for mode, comps in zip(est.modes, est.components):
+            model = getattr(mode, "model", None)
+            if tuple(comps[:4]) == (0, 1, 2, 3) and not getattr(mode, "state_dependent_Q", False) \
+                    and callable(getattr(model, "Q", None)):
+                Q = Q + np.asarray(model.Q(dt))[..., :4, :4]
+        return F, Q
+    return FQ
+
+
+def _mode_predict(mode, x, P, dt):
+    """Mode-matched prediction over per-track intervals ``dt`` (k,): a linear
+    :class:`~kftrack.imm.KalmanMode` through its model's ``F(dt)``, ``Q(dt)`` (its own ``predict``
+    caches one scalar ``dt``), any other mode through ``mode.predict``."""
+    model = getattr(mode, "model", None)
+    if type(mode).__name__ == "KalmanMode":
+        return _k.kf_predict(x, P, model.F(dt), model.Q(dt))
+    return mode.predict(x, P, dt)
+
+
 def _check_motion(motion):
     if not (callable(getattr(motion, "F", None)) and callable(getattr(motion, "Q", None))):
         raise TypeError(f"motion must be a motion model with F(dt) and Q(dt), e.g. "
@@ -216,6 +270,60 @@ def _check_motion(motion):
     F = np.asarray(motion.F(1.0))
     if F.shape != (4, 4):
         raise ValueError(f"motion must have the state [x, vx, y, vy] (F(dt) of shape (4, 4)), got shape {F.shape}")
+
+
+# --------------------------------------------------------------------------------------------
+# the per-scan kernels, chosen once at construction (no checks inside: the arguments were checked)
+# --------------------------------------------------------------------------------------------
+def _sensor_kernels(sensor):
+    """``(h, jacobian)`` of the sensor without per-call checks: for a
+    :class:`~kftrack.sensors.radar.RangeBearing` its generated functions called directly (the
+    same operations as ``sensor.h`` / ``sensor.jacobian``, so the same bits); for any other
+    sensor its own methods."""
+    if type(sensor) is not _radar.RangeBearing:
+        return sensor.h, sensor.jacobian
+    gen = _radar._generated(2)
+    h_fn, H_fn = gen["h"]._exact, gen["H"]._exact
+    idx, site = list(sensor.position_indices), np.asarray(sensor.sensor)
+
+    def h(x):
+        d = x[..., idx] - site
+        return np.stack(h_fn(d[..., 0], d[..., 1]), axis=-1)
+
+    def jacobian(x):
+        d = x[..., idx] - site
+        H = np.zeros(x.shape[:-1] + (2, x.shape[-1]))
+        H[..., idx] = np.stack(H_fn(d[..., 0], d[..., 1]), axis=-1).reshape(x.shape[:-1] + (2, 2))
+        return H
+
+    return h, jacobian
+
+
+def _motion_kernel(motion):
+    """``dt (k,) -> (F (k, 4, 4), Q (k, 4, 4))`` without per-call checks: for
+    :class:`~kftrack.models.ConstantVelocity` ``(ndim=2)`` its generated per-axis entries
+    assembled directly (the same operations as ``motion.F`` / ``motion.Q``, so the same bits);
+    for any other model ``motion.F(dt)``, ``motion.Q(dt)``."""
+    if type(motion) is not _models.ConstantVelocity or motion.ndim != 2:
+        return lambda dt: (motion.F(dt), motion.Q(dt))
+    continuous = motion.noise == "continuous"
+    q_fn = _models._kinematic(1)["Qc" if continuous else "Qd"]._exact
+    scale = motion.q if continuous else motion.sigma2
+
+    def FQ(dt):
+        dt = np.asarray(dt, dtype=float)
+        F = np.zeros(dt.shape + (4, 4))
+        Q = np.zeros(dt.shape + (4, 4))
+        e = q_fn(dt)  # per axis [Q00, Q01, Q10, Q11] / q
+        for a in range(2):
+            o = 2 * a
+            F[..., o, o] = F[..., o + 1, o + 1] = 1.0
+            F[..., o, o + 1] = dt
+            for k, (i, j) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+                Q[..., o + i, o + j] = scale[a] * e[k]
+        return F, Q
+
+    return FQ
 
 
 def _positive(value, name, what, allow_none=False):
@@ -261,16 +369,58 @@ class MultiTargetTracker:
     initiate : start tracks from unassociated detections (False: only ``initial_tracks``).
     initial_tracks : list of ``(t, x (4,), P (4, 4))`` known starts, confirmed from the start.
     max_events : JPDA guard, the largest number of joint events of one cluster enumerated exactly.
+    turn_rate_std : with an IMM ``motion``, the prior standard deviation of the common state's
+        components beyond ``[x, vx, y, vy]`` (the turn rate ``omega``, rad/s) of a new track
+        (mean 0); default 0.05 rad/s (about a standard-rate turn, 3 deg/s).
+
+    **IMM modes per track.** ``motion`` may be a :class:`kftrack.imm.IMM` (the estimator
+    :func:`kftrack.imm.imm_filter` takes: its modes, e.g. :class:`~kftrack.imm.EKFMode` of
+    :class:`~kftrack.models.ConstantVelocity` and of :class:`~kftrack.models.CoordinatedTurn`,
+    the Markov matrix ``Pi`` and ``mu0``, ``components`` for modes of different dimension; the
+    common state begins ``[x, vx, y, vy]``). Each track then carries its modes' estimates and
+    mode probabilities :math:`\mu`; a prediction is the IMM's mixing and mode-matched prediction
+    (``Pi(dt)`` of each track's own interval); the measurement model is the tracker's ``sensor``
+    (the modes' own ``h``, ``R`` are not used). The reported ``x``, ``P`` are the combined
+    (moment-matched) estimate's first four components. Gating and the coarse test use the
+    combined prediction. **GNN**: the cost of a pair is :math:`-2\log\sum_j \bar c_j N(\nu_j; 0, S_j)
+    - m\log 2\pi` (the IMM's mixed likelihood; :math:`d^2 + \log|S|` for one mode), then each
+    mode's EKF update and :math:`\mu_j \propto \bar c_j N(\nu_j; 0, S_j)`, as :meth:`kftrack.imm.IMM.update`.
+    **JPDA**: an isolated track takes the IMM-PDAF update (the equations of
+    :func:`kftrack.association.imm_pdaf_update`, each mode linearised at its own prediction:
+    a PDAF per mode, :math:`\mu_j \propto \bar c_j\Lambda_j`); in a multi-target cluster the
+    marginals :math:`\beta_{tj}` are computed once on the tracks' combined predictions (exact
+    JPDA, or cheap JPDA over the guard) and each mode is updated in PDA form with those
+    :math:`\beta` and its own innovations, its likelihood :math:`\Lambda_j` that of its own
+    PDAF on the cluster's detections (an approximation: the exact IMM-JPDA enumerates joint
+    events per mode combination). Mode probabilities: :meth:`Tracks.mu` per track, and
+    :attr:`mode_probabilities` while streaming. :meth:`Tracks.snapshot` extrapolates the
+    combined state in a straight line (constant velocity).
     """
 
     def __init__(self, *, method: str = "gnn", sensor, motion, P_D: float, clutter_density=None,
                  P_G: float = 0.99, confirmation=(2, 3), deletion=(3, 3), max_std: float | None = None,
-                 v_max: float = 400.0, initiate: bool = True, initial_tracks=(), max_events: int = 10_000):
+                 v_max: float = 400.0, initiate: bool = True, initial_tracks=(), max_events: int = 10_000,
+                 turn_rate_std: float = 0.05):
         if method not in ("gnn", "jpda"):
             raise ValueError(f"method must be 'gnn' or 'jpda' for MultiTargetTracker ('phd' via track_scans), got {method!r}")
         self.R, self.angles = _check_sensor(sensor)
-        _check_motion(motion)
+        self._imm = None
+        if hasattr(motion, "modes"):
+            self._imm = motion
+            self._omega_std, self._Pi = _check_imm(motion, turn_rate_std)
+            r = len(motion.modes)
+            self._mx = [np.zeros((0, len(c))) for c in motion.components]
+            self._mP = [np.zeros((0, len(c), len(c))) for c in motion.components]
+            self._logmu = np.zeros((0, r))
+            self._mu_records: list[np.ndarray] = []
+            self._snapshot_motion = _models.ConstantVelocity(ndim=2, q=0.0)
+            self._FQ = _imm_growth(motion, _motion_kernel(self._snapshot_motion))
+        else:
+            _check_motion(motion)
+            self._FQ = _motion_kernel(motion)
+            self._snapshot_motion = motion
         self.method, self.sensor, self.motion = method, sensor, motion
+        self._h, self._H = _sensor_kernels(sensor)
         self.P_D = _assoc._check_prob_detect(P_D)
         self.P_G = _assoc._check_prob_gate(P_G)
         self.confirmation = _check_logic(confirmation, "confirmation", ("m_of_n", "score"))
@@ -323,15 +473,33 @@ class MultiTargetTracker:
                 raise ValueError(f"initial_tracks[{k}] must be (t, x (4,), P (4, 4)), got {item!r}") from None
             x0 = as_float_array(x0, f"initial_tracks[{k}] x")
             P0 = as_float_array(P0, f"initial_tracks[{k}] P")
-            if x0.shape != (4,) or P0.shape != (4, 4):
-                raise ValueError(f"initial_tracks[{k}] must be (t, x (4,), P (4, 4)), got x of shape {x0.shape} "
-                                 f"and P of shape {P0.shape}")
+            N = self._imm.N if self._imm is not None else 4
+            if not (x0.shape == (4,) and P0.shape == (4, 4) or x0.shape == (N,) and P0.shape == (N, N)):
+                raise ValueError(f"initial_tracks[{k}] must be (t, x (4,), P (4, 4))"
+                                 + (f" or (t, x ({N},), P ({N}, {N}))" if N > 4 else "")
+                                 + f", got x of shape {x0.shape} and P of shape {P0.shape}")
             self._add(x0[None], P0[None], np.array([float(t0)]), confirmed=True)
             self._last_time = max(self._last_time, float(t0))
 
     # ---------------------------------------------------------------------------------------
     def _add(self, x, P, t, confirmed):
         k = len(t)
+        if self._imm is not None:  # every mode starts from (x, P), the extra components (omega) from the prior
+            est, N = self._imm, self._imm.N
+            xN, PN = np.zeros((k, N)), np.zeros((k, N, N))
+            xN[:, :x.shape[1]], PN[:, :x.shape[1], :x.shape[1]] = x, P
+            extra = np.arange(x.shape[1], N)
+            PN[:, extra, extra] = self._omega_std ** 2
+            for j, c in enumerate(est.components):
+                c = np.array(c)
+                self._mx[j] = np.concatenate([self._mx[j], xN[:, c]])
+                self._mP[j] = np.concatenate([self._mP[j], PN[:, c[:, None], c]])
+            with np.errstate(divide="ignore"):
+                logmu = np.broadcast_to(np.log(est.mu0), (k, est.r))
+            self._logmu = np.concatenate([self._logmu, logmu])
+            _, xc, Pc = est._combine(logmu, [xN[:, np.array(c)] for c in est.components],
+                                     [PN[:, np.array(c)[:, None], np.array(c)] for c in est.components])
+            x, P = xc[:, :4], Pc[:, :4, :4]
         self._x = np.concatenate([self._x, x])
         self._P = np.concatenate([self._P, P])
         self._t = np.concatenate([self._t, t])
@@ -348,11 +516,42 @@ class MultiTargetTracker:
             self._ends[int(i)] = t_end
         for name in ("_x", "_P", "_t", "_id", "_conf", "_hist", "_age", "_score", "_peak"):
             setattr(self, name, getattr(self, name)[keep])
+        if self._imm is not None:
+            self._mx, self._mP = [a[keep] for a in self._mx], [b[keep] for b in self._mP]
+            self._logmu = self._logmu[keep]
 
-    def _predict(self, idx, t):
-        """Tracks ``idx`` (k,) predicted to times ``t`` (k,) from their last states."""
-        dt = t - self._t[idx]
-        return _k.kf_predict(self._x[idx], self._P[idx], self.motion.F(dt), self.motion.Q(dt))
+    def _predict(self, idx, t, modes=False):
+        """Tracks ``idx`` (k,) predicted to times ``t`` (k,) from their last states: ``(x, P)``,
+        with ``modes=True`` also the IMM's ``(xs, Ps, log_cbar)`` (None without an IMM)."""
+        if self._imm is None:
+            F, Q = self._FQ(t - self._t[idx])
+            out = _k.kf_predict(self._x[idx], self._P[idx], F, Q)
+            return out + (None,) if modes else out
+        est, dt = self._imm, t - self._t[idx]
+        Pi = self._Pi if self._Pi is not None else np.stack(
+            [est.transition(float(d)) for d in dt] or [np.eye(est.r)])[:len(dt)]
+        w, log_cbar = est._mixing_weights(self._logmu[idx], Pi)
+        x0, P0 = est._mix(w, [a[idx] for a in self._mx], [b[idx] for b in self._mP])
+        pred = [_mode_predict(m, a, b, dt) for m, a, b in zip(est.modes, x0, P0)]
+        xs, Ps = [p[0] for p in pred], [p[1] for p in pred]
+        _, x, P = est._combine(log_cbar, xs, Ps)
+        out = (x[..., :4], P[..., :4, :4])
+        return out + ((xs, Ps, log_cbar),) if modes else out
+
+    def _imm_update(self, xs, Ps, log_cbar, loglik):
+        r"""Mode probabilities :math:`\mu_j \propto \bar c_j \Lambda_j` and the combination, as
+        :meth:`kftrack.imm.IMM.update`: returns ``(x (k, 4), P (k, 4, 4), log_mu (k, r))``."""
+        joint = log_cbar + loglik
+        log_mu = joint - _k.logsumexp(joint, axis=-1, keepdims=True)
+        _, x, P = self._imm._combine(log_mu, xs, Ps)
+        return x[..., :4], P[..., :4, :4], log_mu
+
+    @property
+    def mode_probabilities(self) -> tuple[np.ndarray, np.ndarray]:
+        """With an IMM ``motion``: ``(ids (T,), mu (T, r))`` of the tracks alive now."""
+        if self._imm is None:
+            raise ValueError("mode_probabilities needs an IMM motion (kftrack.imm.IMM), got a single model")
+        return self._id.copy(), np.exp(self._logmu)
 
     def _check_scan(self, scan):
         try:
@@ -383,14 +582,14 @@ class MultiTargetTracker:
     # ---------------------------------------------------------------------------------------
     def step(self, scan) -> list[TrackState]:
         """Process one scan; returns the tracks alive after it (tentative and confirmed)."""
-        return self._run(*self._check_scan(scan))
+        self._run(*self._check_scan(scan))
+        return [TrackState(int(i), float(t), x, P, bool(c))
+                for i, t, x, P, c in zip(self._id, self._t, self._x, self._P, self._conf)]
 
-    def _run(self, t_scan, times, z) -> list[TrackState]:
+    def _run(self, t_scan, times, z) -> None:
         start = _time.perf_counter()
         self._step(t_scan, times, z)
         self._seconds.append(_time.perf_counter() - start)
-        return [TrackState(int(i), float(t), x, P, bool(c))
-                for i, t, x, P, c in zip(self._id, self._t, self._x, self._P, self._conf)]
 
     def tracks(self) -> Tracks:
         """All tracks so far, as :class:`Tracks`."""
@@ -398,14 +597,18 @@ class MultiTargetTracker:
         for i in self._id:
             ends[int(i)] = np.inf
         if not self._records:
-            return Tracks([], ends, self.motion, self.fallbacks, self._seconds)
+            return Tracks([], ends, self._snapshot_motion, self.fallbacks, self._seconds)
         ids, ts, xs, Ps, cs = (np.concatenate(a) for a in zip(*self._records))
         order = np.argsort(ids, kind="stable")
         ids, ts, xs, Ps, cs = ids[order], ts[order], xs[order], Ps[order], cs[order]
         cut = np.flatnonzero(np.diff(ids)) + 1
         tracks = [Track(int(i[0]), t, x, P, c) for i, t, x, P, c in
                   zip(*(np.split(a, cut) for a in (ids, ts, xs, Ps, cs)))]
-        return Tracks(tracks, ends, self.motion, self.fallbacks, self._seconds)
+        out = Tracks(tracks, ends, self._snapshot_motion, self.fallbacks, self._seconds)
+        if self._imm is not None:
+            mus = np.split(np.concatenate(self._mu_records)[order], cut)
+            out.mu = {tr.id: mu for tr, mu in zip(tracks, mus)}
+        return out
 
     def _step(self, t_scan, times, z):
         M, T = len(z), len(self._t)
@@ -413,31 +616,37 @@ class MultiTargetTracker:
         hit = np.zeros(T, dtype=bool)
         logN = np.zeros(T)
         used = np.zeros(M, dtype=bool)  # detections associated (GNN) or gated (JPDA)
-        x_new, P_new, t_new = None, None, np.full(T, t_ref)
+        x_new, P_new, t_new, m_new = None, None, np.full(T, t_ref), None
         if T:
-            x_new, P_new = self._predict(np.arange(T), np.full(T, t_ref))
+            x_new, P_new, m_new = self._predict(np.arange(T), np.full(T, t_ref), modes=True)
+            if m_new is not None:  # IMM: (xs, Ps, log_mu) of every track, predicted; updated rows replaced
+                m_new = (list(m_new[0]), list(m_new[1]), m_new[2])
         if T and M:
             ti, dj = self._candidates(x_new, P_new, times, z, t_ref)
             if self.method == "gnn":
-                self._gnn(ti, dj, times, z, x_new, P_new, t_new, hit, logN, used)
+                self._gnn(ti, dj, times, z, x_new, P_new, t_new, hit, logN, used, m_new)
             else:
-                self._jpda(ti, dj, times, z, x_new, P_new, t_new, hit, logN, used)
+                self._jpda(ti, dj, times, z, x_new, P_new, t_new, hit, logN, used, m_new)
         if T:
             self._x, self._P, self._t = x_new, P_new, t_new
+            if m_new is not None:
+                self._mx, self._mP, self._logmu = m_new
             self._manage(hit, logN, t_ref)
         self._last_time = max(t_scan, times.max(initial=-np.inf), self._last_time)
         if self.initiate:
             self._births(times[~used], z[~used])
         if len(self._t):
             self._records.append((self._id.copy(), self._t.copy(), self._x.copy(), self._P.copy(), self._conf.copy()))
+            if self._imm is not None:
+                self._mu_records.append(np.exp(self._logmu))
 
     def _candidates(self, xr, Pr, times, z, t_ref):
         """Coarse test: pairs (track, detection) within per-component windows, vectorised."""
         T = len(xr)
         delta = float(np.max(np.abs(times - t_ref)))
-        F, Q = self.motion.F(delta), self.motion.Q(delta)
+        F, Q = self._FQ(delta)
         _, P_far = _k.kf_predict(xr, Pr, F, Q)  # covariance grown over the largest time offset
-        zr, H = self.sensor.h(xr), self.sensor.jacobian(xr)
+        zr, H = self._h(xr), self._H(xr)
         S_far = _k.sym(_k.mm(_k.mm(H, P_far), _k.matrix_transpose(H))) + self.R
         S_now = _k.mm(_k.mm(H, Pr), _k.matrix_transpose(H)) + self.R
         var = np.maximum(np.diagonal(S_far, axis1=-2, axis2=-1), np.diagonal(S_now, axis1=-2, axis2=-1))
@@ -458,18 +667,27 @@ class MultiTargetTracker:
         return ti[ok], dj[ok]
 
     def _fine(self, ti, dj, tau, z):
-        """Per pair: prediction to ``tau`` (k,), the EKF innovation, gain, NIS and log-likelihood."""
-        xp, Pp = self._predict(ti, tau)
-        H = self.sensor.jacobian(xp)
-        y = _k.residual(z[dj], self.sensor.h(xp), self.angles)
+        r"""Per pair: prediction to ``tau`` (k,), the EKF innovation, gain, NIS and log-likelihood,
+        ``log|S|`` and the IMM's modes (None without one). With an IMM the NIS is that of the
+        combined prediction, the log-likelihood the mixture's :math:`\log\sum_j \bar c_j
+        N(\nu_j; 0, S_j)` and ``logdet`` the value that makes ``nis + logdet`` its
+        :math:`-2\log L - m\log 2\pi`."""
+        xp, Pp, modes = self._predict(ti, tau, modes=True)
+        H = self._H(xp)
+        y = _k.residual(z[dj], self._h(xp), self.angles)
         g = _k.kf_gain(Pp, H, self.R)
         nis, loglik = _k.kf_score(y, g)
-        return xp, Pp, H, y, g, nis, loglik
+        if modes is None:
+            return xp, Pp, H, y, g, nis, loglik, g.logdet, None
+        ll = np.stack([_k.kf_score(_k.residual(z[dj], self._h(a), self.angles), _k.kf_gain(b, self._H(a), self.R))[1]
+                       for a, b in zip(modes[0], modes[1])], axis=-1)
+        loglik = _k.logsumexp(modes[2] + ll, axis=-1)
+        return xp, Pp, H, y, g, nis, loglik, -2.0 * loglik - self.m * _assoc._LOG_2PI - nis, modes
 
-    def _gnn(self, ti, dj, times, z, x_new, P_new, t_new, hit, logN, used):
-        xp, Pp, _, _, g, nis, loglik = self._fine(ti, dj, times[dj], z)
+    def _gnn(self, ti, dj, times, z, x_new, P_new, t_new, hit, logN, used, m_new=None):
+        xp, Pp, _, y, g, nis, loglik, logdet, modes = self._fine(ti, dj, times[dj], z)
         inside = nis <= self.gamma
-        ti, dj, xp, Pp, nis, loglik, logdet = (a[inside] for a in (ti, dj, xp, Pp, nis, loglik, g.logdet))
+        ti, dj, xp, Pp, nis, loglik, logdet = (a[inside] for a in (ti, dj, xp, Pp, nis, loglik, logdet))
         if not len(ti):
             return
         cost = nis + logdet
@@ -499,16 +717,33 @@ class MultiTargetTracker:
             chosen[pm[sel]] = True
         k = np.flatnonzero(chosen)
         i, j = ti[k], dj[k]
-        u = _k.ekf_update(xp[k], Pp[k], z[j], self.sensor.h, self.sensor.jacobian, self.R, self.angles)
-        x_new[i], P_new[i], t_new[i] = u.x, u.P, times[j]
+        if modes is None:  # the EKF update x + K y at the pair's prediction, its gain and P+ already in g
+            kk = np.flatnonzero(inside)[k]  # (kernels.ekf_update would compute the same numbers again)
+            x_new[i], P_new[i] = xp[k] + _k.mv(g.K[kk], y[kk]), g.P[kk]
+        else:  # each mode's EKF update, then the mode probabilities and the combination
+            kk = np.flatnonzero(inside)[k]
+            ups = [_k.ekf_update(a[kk], b[kk], z[j], self._h, self._H, self.R, self.angles)
+                   for a, b in zip(modes[0], modes[1])]
+            xs, Ps = [u.x for u in ups], [u.P for u in ups]
+            x_new[i], P_new[i], log_mu = self._imm_update(xs, Ps, modes[2][kk], np.stack([u.loglik for u in ups], -1))
+            self._set_modes(m_new, i, xs, Ps, log_mu)
+        t_new[i] = times[j]
         hit[i], logN[i], used[j] = True, loglik[k], True
 
-    def _jpda(self, ti, dj, times, z, x_new, P_new, t_new, hit, logN, used):
+    @staticmethod
+    def _set_modes(m_new, i, xs, Ps, log_mu):
+        for a, v in zip(m_new[0], xs):
+            a[i] = v
+        for b, v in zip(m_new[1], Ps):
+            b[i] = v
+        m_new[2][i] = log_mu
+
+    def _jpda(self, ti, dj, times, z, x_new, P_new, t_new, hit, logN, used, m_new=None):
         T, M = len(x_new), len(z)
         has = np.bincount(ti, minlength=T) > 0
         tau = np.where(has, np.bincount(ti, weights=times[dj], minlength=T) / np.maximum(np.bincount(ti, minlength=T), 1),
                        t_new)
-        _, _, _, y, _, nis, loglik = self._fine(ti, dj, tau[ti], z)
+        _, _, _, y, _, nis, loglik, _, _ = self._fine(ti, dj, tau[ti], z)
         inside = nis <= self.gamma
         ti, dj, y, loglik = ti[inside], dj[inside], y[inside], loglik[inside]
         if not len(ti):
@@ -519,10 +754,10 @@ class MultiTargetTracker:
         np.maximum.at(best, ti, loglik)
         logN[hit] = best[hit]
         idx = np.flatnonzero(hit)
-        xs, Ps = self._predict(idx, tau[idx])  # one prediction per track: its candidates' mean time
+        xs, Ps, modes = self._predict(idx, tau[idx], modes=True)  # one prediction per track: its candidates' mean time
         t_new[idx] = tau[idx]
-        H = self.sensor.jacobian(xs)
-        zhat_b = self.sensor.h(xs)
+        H = self._H(xs)
+        zhat_b = self._h(xs)
         pos = np.full(T, -1)
         pos[idx] = np.arange(len(idx))
         shared = np.bincount(dj, minlength=M) > 1
@@ -531,7 +766,31 @@ class MultiTargetTracker:
         # isolated tracks (no gated detection shared): one batched call, each its own run (T = 1),
         # its detections as linear pseudo-measurements H x + nu, so that z - H x is the EKF innovation
         single = idx[~multi_track[idx]]
-        if len(single):
+        if len(single) and modes is not None:  # IMM-PDAF: a PDAF per mode, each linearised at its own prediction
+            ps = pos[single]
+            sel = ~multi_track[ti]
+            si, sj = ti[sel], dj[sel]
+            o = np.lexsort((sj, si))
+            si, sj = si[o], sj[o]
+            cnt = np.bincount(pos[si], minlength=len(idx))[ps]
+            rank = np.arange(len(si)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+            row = np.repeat(np.arange(len(single)), cnt)
+            mask = np.zeros((len(single), int(cnt.max())), dtype=bool)
+            mask[row, rank] = True
+            lam = self._lam(zhat_b[ps])
+            xm, Pm, ll = [], [], []
+            for a, b in zip(modes[0], modes[1]):
+                a, b = a[ps], b[ps]
+                Hj = self._H(a)
+                Z = np.zeros(mask.shape + (self.m,))
+                Z[row, rank] = _k.mv(Hj[row], a[row]) + _k.residual(z[sj], self._h(a)[row], self.angles)
+                xu, Pu, lu = self._pdaf(a[:, None], b[:, None], Z[:, None], mask[:, None], Hj[:, None], lam[:, None])
+                xm.append(xu[:, 0])
+                Pm.append(Pu[:, 0])
+                ll.append(lu[:, 0])
+            out_x[ps], out_P[ps], log_mu = self._imm_update(xm, Pm, modes[2][ps], np.stack(ll, -1))
+            self._set_modes(m_new, single, xm, Pm, log_mu)
+        elif len(single):
             ps = pos[single]
             sel = ~multi_track[ti]
             si, sj, sy = ti[sel], dj[sel], y[sel]
@@ -546,9 +805,9 @@ class MultiTargetTracker:
             mask[row, rank] = True
             lam = self._lam(zhat_b[ps])
             if self.max_events >= 1 + Z.shape[1]:  # a lone target's events: missed or one of its detections
-                u = _assoc.jpda_update(xs[ps][:, None], Ps[ps][:, None], Z, H[ps][:, None], self.R, P_D=self.P_D,
-                                       P_G=self.P_G, clutter_density=lam, mask=mask, max_events=self.max_events)
-                out_x[ps], out_P[ps] = u.x[:, 0], u.P[:, 0]
+                xu, Pu, _ = self._pdaf(xs[ps][:, None], Ps[ps][:, None], Z[:, None], mask[:, None], H[ps][:, None],
+                                       lam[:, None])
+                out_x[ps], out_P[ps] = xu[:, 0], Pu[:, 0]
             else:  # a guard below a lone target's event count: the fall-back on each run over it
                 for r, p in enumerate(ps):
                     Zr = Z[r, mask[r]]
@@ -557,7 +816,7 @@ class MultiTargetTracker:
                                                P_G=self.P_G, clutter_density=lam[r], max_events=self.max_events)
                         xu, Pu = u.x, u.P
                     else:
-                        xu, Pu = self._cheap_jpda(xs[p][None], Ps[p][None], Zr, H[p][None], lam[r])
+                        xu, Pu, _ = self._cheap_jpda(xs[p][None], Ps[p][None], Zr, H[p][None], lam[r])
                         self.fallbacks += 1
                     out_x[p], out_P[p] = xu[0], Pu[0]
         if not multi_track.any():
@@ -582,14 +841,59 @@ class MultiTargetTracker:
             try:
                 u = _assoc.jpda_update(xa[pc], Pa[pc], Z, Ha[pc], self.R, P_D=self.P_D, P_G=self.P_G,
                                        clutter_density=lam, max_events=self.max_events)
-                xu, Pu = u.x, u.P
+                xu, Pu, beta = u.x, u.P, u.beta
             except ValueError as err:
                 if "max_events" not in str(err):
                     raise
-                xu, Pu = self._cheap_jpda(xa[pc], Pa[pc], Z, Ha[pc], lam)
+                xu, Pu, beta = self._cheap_jpda(xa[pc], Pa[pc], Z, Ha[pc], lam)
                 self.fallbacks += 1
-            out_x[pc], out_P[pc] = xu[:, :4], Pu[:, :4, :4]
+            if modes is None:
+                out_x[pc], out_P[pc] = xu[:, :4], Pu[:, :4, :4]
+                continue
+            # IMM (approximation): the cluster's marginals beta from the combined predictions; each
+            # mode updated in PDA form with them, its likelihood that of its own PDAF on the cluster
+            xm, Pm, ll = [], [], []
+            for a, b in zip(modes[0], modes[1]):
+                a, b = a[pc], b[pc]
+                Hj = self._H(a)
+                n = a.shape[-1]
+                Haj = np.concatenate([Hj, (self._h(a) - _k.mv(Hj, a))[..., None]], axis=-1)
+                xaj = np.concatenate([a, np.ones((len(a), 1))], axis=-1)
+                Paj = np.zeros((len(a), n + 1, n + 1))
+                Paj[:, :n, :n] = b
+                xu, Pu, lu = self._pdaf(xaj, Paj, Z, np.ones(len(Z), dtype=bool), Haj, np.full(len(a), lam), beta)
+                xm.append(xu[:, :n])
+                Pm.append(Pu[:, :n, :n])
+                ll.append(lu)
+            out_x[pc], out_P[pc], log_mu = self._imm_update(xm, Pm, modes[2][pc], np.stack(ll, -1))
+            self._set_modes(m_new, ct, xm, Pm, log_mu)
         x_new[idx], P_new[idx] = out_x, out_P
+
+    def _pdaf(self, x, P, Z, mask, H, lam, beta=None):
+        r"""PDAF update of a batch of lone targets (each its own gating cluster, so its JPDA
+        marginals are its own normalised weights): :func:`kftrack.association.jpda_update` on
+        ``T = 1`` runs without its argument checks, the same operations and bits. ``x`` (..., n),
+        ``P``, padded ``Z`` (..., M, m) with ``mask`` (..., M), ``H`` (..., m, n), ``lam`` (...).
+        Returns ``(x, P, loglik)``, ``loglik`` the log of the PDAF's likelihood ratio against all
+        clutter, :math:`\log(1 - P_D P_G + \sum_i L_i)` (an IMM mode's likelihood in IMM-PDAF).
+        ``beta`` (..., M + 1): marginals to combine with instead of the PDAF's own (a cluster's
+        JPDA marginals)."""
+        zhat = (H @ x[..., None])[..., 0]  # association._gate, with the kernel update and gamma kept
+        u = _k.kf_update(x, P, zhat, H, self.R)
+        S = u.S
+        nu = np.where(mask[..., None], Z - zhat[..., None, :], 0.0)
+        Sinv_nu = np.linalg.solve(S[..., None, :, :], nu[..., None])[..., 0]
+        d2 = np.where(mask, np.einsum("...i,...i->...", nu, Sinv_nu), np.inf)
+        _, logdet = np.linalg.slogdet(S)
+        logN = -0.5 * (d2 + (logdet + self.m * _assoc._LOG_2PI)[..., None])
+        g = _assoc.Gate(zhat, S, nu, d2, mask & (d2 <= self.gamma), self.gamma, None, logN)
+        logL0, logL, _, _ = _assoc._log_pda_terms(g, self.P_D, self.P_G, lam)
+        table = np.concatenate([logL0[..., None], logL], axis=-1)
+        total = _assoc._logsumexp(table)
+        if beta is None:
+            beta = np.exp(table - total[..., None])
+        x_post, P_post, _ = _assoc._pda_combine(x, P, u, nu, beta)
+        return x_post, P_post, total
 
     def _unwrap(self, z, zhat):
         """Detections with their angle components moved within pi of ``zhat``, so that a plain
@@ -606,7 +910,7 @@ class MultiTargetTracker:
         b = G / denom
         beta = np.concatenate([1.0 - b.sum(1, keepdims=True), b], axis=1)
         x, P, _ = _assoc._pda_combine(xa, Pa, u, g.nu, beta)
-        return x, P
+        return x, P, beta
 
     def _manage(self, hit, logN, t_ref):
         self._age += 1
@@ -621,7 +925,7 @@ class MultiTargetTracker:
             self._conf |= tentative & ok
             keep &= ~(tentative & ~self._conf & (self._age >= N))
         else:
-            lam = self._lam(self.sensor.h(self._x)) if self._lam is not None else None
+            lam = self._lam(self._h(self._x)) if self._lam is not None else None
             self._score = self._score + score_increment(hit, logN, P_D=self.P_D, P_G=self.P_G, clutter_density=lam)
             self._peak = np.maximum(self._peak, self._score)
             up, down = self._sprt
@@ -665,16 +969,27 @@ class MultiTargetTracker:
                 a = _assoc.gnn_assignment(C, G, np.full(len(rows), C.max() + 1.0))
                 take = a >= 0
                 i_c, j_n = rows[take], cols[a[take]]
-                xs, Ps, ts = [], [], []
-                for i, j in zip(i_c, j_n):  # a loop over births only (few per scan)
-                    x0, P0 = two_point_initiation(pc[i], pn[j], times[j] - tc[i], 0.5 * (Cc[i] + Cn[j]))
-                    xs.append(x0)
-                    Ps.append(P0)
-                    ts.append(times[j])
-                if xs:
-                    self._add(np.array(xs), np.array(Ps), np.array(ts), confirmed=False)
+                if len(i_c):
+                    x0, P0 = _two_point(pc[i_c], pn[j_n], times[j_n] - tc[i_c], 0.5 * (Cc[i_c] + Cn[j_n]))
+                    self._add(x0, P0, times[j_n], confirmed=False)
                 used[j_n] = True
         self._cand = (pn[~used], Cn[~used], times[~used])
+
+
+def _two_point(p1, p2, dt, C):
+    r"""Two-point initiation of ``B`` tracks at once, :func:`kftrack.trackmanagement.two_point_initiation`
+    vectorised over per-birth intervals and covariances (the same operations per birth, the same
+    bits): positions ``p1``, ``p2`` ``(B, 2)`` at times ``-dt`` and 0, ``dt`` ``(B,)``, position
+    covariance ``C`` ``(B, 2, 2)``. With :math:`A = [[1, -\Delta t], [1, 0]]`,
+    :math:`G = (A^\top A)^{-1}`: ``x`` ``(B, 4)`` the least-squares ``[x, vx, y, vy]`` at the second
+    point and ``P = sym(C \otimes G)`` ``(B, 4, 4)``."""
+    B = len(dt)
+    A = np.stack([np.ones((B, 2)), dt[:, None] * np.arange(-1, 1)], axis=-1)  # (B, k, 2)
+    G = np.linalg.inv(np.swapaxes(A, -1, -2) @ A)
+    coef = np.einsum("...ab,...kb,...kd->...ad", G, A, np.stack([p1, p2], axis=1))  # (B, 2, d): [pos, vel]
+    x = np.swapaxes(coef, -1, -2).reshape(B, 4)
+    P = (C[:, :, None, :, None] * G[:, None, :, None, :]).reshape(B, 4, 4)  # kron(C, G)
+    return x, 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
 # --------------------------------------------------------------------------------------------
@@ -682,7 +997,8 @@ class MultiTargetTracker:
 # --------------------------------------------------------------------------------------------
 def track_scans(scans, *, method: str = "gnn", sensor, motion, P_D: float, clutter_density=None, P_G: float = 0.99,
                 confirmation=(2, 3), deletion=(3, 3), max_std: float | None = None, v_max: float = 400.0,
-                initiate: bool = True, initial_tracks=(), max_events: int = 10_000, **phd_options) -> Tracks:
+                initiate: bool = True, initial_tracks=(), max_events: int = 10_000, turn_rate_std: float = 0.05,
+                **phd_options) -> Tracks:
     r"""Track many targets through a sequence of scans.
 
     Parameters
@@ -735,7 +1051,8 @@ def track_scans(scans, *, method: str = "gnn", sensor, motion, P_D: float, clutt
         raise TypeError(f"scans must be a sequence of scans (time, times, z), got {type(scans).__name__}")
     tracker = MultiTargetTracker(method=method, sensor=sensor, motion=motion, P_D=P_D, clutter_density=clutter_density,
                                  P_G=P_G, confirmation=confirmation, deletion=deletion, max_std=max_std, v_max=v_max,
-                                 initiate=initiate, initial_tracks=initial_tracks, max_events=max_events)
+                                 initiate=initiate, initial_tracks=initial_tracks, max_events=max_events,
+                                 turn_rate_std=turn_rate_std)
     for k, scan in enumerate(scans):
         try:
             checked = tracker._check_scan(scan)
