@@ -39,15 +39,19 @@ def test_split_is_the_existing_sets_disjoint_and_complete():
     assert (tr, te, rb) == (adsb.CHAPTER_FLIGHTS, adsb.UNSEEN_FLIGHTS, adsb.NOISY_FLIGHTS)
     assert (len(tr), len(te), len(rb)) == (7, 26, 5)
     assert len(set(tr) | set(te) | set(rb)) == 38
+    # every single-flight file is in one set; data/adsb/traffic/ holds a many-aircraft window
+    # (kftrack.adsb.load_traffic, issue 28), not single flights
     files = {str(p.relative_to(ROOT / "data" / "adsb"))[:-len(".csv.gz")]
-             for p in (ROOT / "data" / "adsb").glob("*/*.csv.gz")}
+             for p in (ROOT / "data" / "adsb").glob("*/*.csv.gz") if p.parent.name != "traffic"}
     assert files == set(tr) | set(te) | set(rb)
     assert [adsb.split_of(n) for n in (tr[0], te[0], rb[0], "my.csv")] == ["training", "test", "robustness", None]
     assert [adsb.category_of(n) for n in (tr[0], "gliders/luberon", "my.csv")] == ["calibration", "gliders", "user"]
 
 
 # ---------------------------------------------------------------- tuning never sees a test flight
-@pytest.mark.parametrize("tune", [T.fit_cv, T.scan_cv, T.tune_baselines, A.fit_recipe])
+@pytest.mark.parametrize("tune", [T.fit_cv, T.scan_cv, T.tune_baselines, A.fit_recipe, A.refit_recipe,
+                                  lambda fl: T.fit_imm(fl, "filterpy IMM (ML)"),
+                                  lambda fl: T.fit_imm(fl, "IMM (chapter, ML)")])
 def test_every_tuning_function_refuses_a_test_flight(tune):
     train = _head(adsb.load_flight(adsb.TRAINING_FLIGHTS[0]), 60)
     test = _head(adsb.load_flight("gliders/luberon"), 60)
@@ -66,10 +70,19 @@ def test_training_reads_no_test_flight(monkeypatch):
         return _head(real(name), 300)
 
     monkeypatch.setattr(adsb, "load_flight", recording)
-    tuning = _bench().train()
+    bench = _bench()
+    tuning = bench.train()
     assert read == list(adsb.TRAINING_FLIGHTS)
     assert tuning.flights == adsb.TRAINING_FLIGHTS
+    assert set(tuning.imm) == set(T.IMM_BASELINES) and set(T.IMM_BASELINES) < set(tuning.score)
     assert tuning.reference in tuning.score and tuning.score[tuning.reference] == min(tuning.score.values())
+    # the recipe's refit (one small step each way, one sweep, to keep it short) reads the training
+    # flights of its categories only
+    read.clear()
+    monkeypatch.setattr(bench, "REFIT_FACTORS", (0.5,))
+    refit = bench.refit_by_category()
+    assert read and set(read) <= set(adsb.TRAINING_FLIGHTS)
+    assert set(refit) == set(bench.REFIT_CATEGORIES)
 
 
 # ---------------------------------------------------------------- the tuned CV baseline
@@ -119,6 +132,101 @@ def test_cv_track_equals_filterpy():
     np.testing.assert_allclose(pred, ref, rtol=0, atol=1e-6)
     assert abs(ll - tot) <= 1e-6 * abs(tot)
     assert np.array_equal(np.isfinite(pred[:, 0]), A.scored_rows(fl.t_s, fl.lat_deg, fl.lon_deg))
+
+
+def _filterpy_imm(fl, kind, q_cv, q_turn, r):
+    """filterpy's IMMEstimator on the tuned baselines' rows: a fixed Markov matrix (filterpy's own)
+    or ``Pi(dt)`` set before each step, predictions combined with the posterior (filterpy's ``x``)
+    or the predicted mode probabilities; returns predictions (K, 2) and the mixture log-likelihood."""
+    from filterpy.kalman import IMMEstimator, KalmanFilter
+    from scipy.linalg import expm
+
+    from kftrack.models import KnownTurn
+    spec = T.IMM_BASELINES[kind]
+    (t, enu, _, rows, place), = T._prepared([A._columns(fl.t_s, fl.lat_deg, fl.lon_deg)])
+    w = math.radians(T.IMM_TURN_DEG_S)
+    key = "sigma2" if spec["noise"] == "discrete" else "q"
+    ms = [KnownTurn(omega=om, **{key: qq}) for om, qq in ((0.0, q_cv), (w, q_turn), (-w, q_turn))]
+    tau = spec["tau"]
+    if tau is not None:
+        lam = (1.0 / np.asarray(tau))[:, None] * (np.ones((3, 3)) - np.eye(3)) / 2.0
+        gen = lam - np.diag(lam.sum(1))
+    s = spec["pi_stay"] or 0.95
+    Pi_fixed = np.full((3, 3), (1 - s) / 2) + np.eye(3) * (s - (1 - s) / 2)
+    pred, ll = np.full((t.size, 2), np.nan), 0.0
+    for i, k in enumerate(rows):
+        if place[i] == 0:
+            continue
+        j = rows[i - 1]
+        dt = t[k] - t[j]
+        if place[i] == 1:
+            x, P = A.two_point_init(enu[j], enu[k], dt, r)
+            fs = []
+            for _ in ms:
+                kf = KalmanFilter(4, 2)
+                kf.H, kf.R, kf.x, kf.P = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]]), r * np.eye(2), x.copy(), P.copy()
+                fs.append(kf)
+            imm = IMMEstimator(fs, np.array(spec["mu0"]), Pi_fixed)
+            continue
+        if tau is not None:
+            imm.M = expm(gen * dt)
+            imm._compute_mixing_probabilities()
+        for kf, m in zip(fs, ms):
+            kf.F, kf.Q = m.F(dt), m.Q(dt)
+        imm.predict()
+        c = imm.cbar.copy()
+        pred[k] = imm.x[[0, 2]] if spec["combine"] == "posterior" else sum(cj * kf.x[[0, 2]] for cj, kf in zip(c, fs))
+        imm.update(enu[k])
+        ll += math.log(float(np.dot(c, imm.likelihood)))
+    return pred, ll
+
+
+@pytest.mark.parametrize("kind", list(T.IMM_BASELINES))
+def test_imm_baselines_equal_filterpy(kind):
+    # An independent implementation (filterpy's IMMEstimator and KalmanFilter, Joseph-form update),
+    # restarted by a two-point start after the gap: predictions and mixture log-likelihood agree to
+    # round-off (~120 updates of O(1e4) m numbers through 3 modes: 1e-6 m, 1e-9 relative).
+    fl = _cv_flight(K=120, gap_at=60)
+    q_cv, q_turn, r = (0.3, 2.0, 300.0)
+    pred, ll, n = T.imm_track(fl.t_s, fl.lat_deg, fl.lon_deg, kind, q_cv, q_turn, r)
+    ref, ll_ref = _filterpy_imm(fl, kind, q_cv, q_turn, r)
+    assert n == 116
+    np.testing.assert_array_equal(np.isnan(pred), np.isnan(ref))
+    np.testing.assert_allclose(pred, ref, rtol=0, atol=1e-6)
+    assert abs(ll - ll_ref) <= 1e-9 * abs(ll_ref)
+    if kind == "filterpy IMM (ML)":      # the benchmark's filterpy run of the tuned baseline: the same predictions
+        la, lo = _bench().filterpy_tuned(fl, q_cv, q_turn, r)
+        la2, lo2 = T.imm_tuned_predictions(fl.t_s, fl.lat_deg, fl.lon_deg, kind, q_cv, q_turn, r)
+        np.testing.assert_allclose(np.c_[la, lo], np.c_[la2, lo2], rtol=0, atol=1e-10)   # 1e-10 deg ~ 1e-5 m
+    with pytest.raises(ValueError, match="kind"):
+        T.imm_track(fl.t_s, fl.lat_deg, fl.lon_deg, "IMM", q_cv, q_turn, r)
+    with pytest.raises(ValueError, match="q_turn"):
+        T.imm_track(fl.t_s, fl.lat_deg, fl.lon_deg, kind, q_cv, -1.0, r)
+
+
+def test_refit_recipe_scans_the_rmse_and_feeds_track_flight():
+    # the chapter's training procedure on a small training subset (two flights, 150 rows each,
+    # one factor-2 step each way, one sweep): the score never rises from the start, it is the
+    # geometric-mean RMSE that track_flight gives with the returned constants, and the constants
+    # pass straight to track_flight
+    flights = [_head(adsb.load_flight(n), 150) for n in ("calibration/munich", "gliders/cevennes")]
+    c = A.refit_recipe(flights, factors=(0.5, 2.0), sweeps=1)
+    assert c.score <= c.start_score and 1 <= c.evaluations <= 1 + 2 * len(A.REFIT_PARAMETERS)
+    logs = []
+    for f in flights:
+        res = A.track_flight(f.t_s, f.lat_deg, f.lon_deg, **c.kwargs())
+        m = A.scored_rows(f.t_s, f.lat_deg, f.lon_deg)
+        logs.append(0.5 * math.log(np.mean(np.sum((res.enu_pred[m] - res.enu[m]) ** 2, axis=1))))
+    assert abs(math.exp(np.mean(logs)) - c.score) <= 1e-9 * c.score     # the same computation
+    start = [A.track_flight(f.t_s, f.lat_deg, f.lon_deg) for f in flights[:1]]
+    assert start[0].counts == A.track_flight(flights[0].t_s, flights[0].lat_deg, flights[0].lon_deg,
+                                             **A.refit_recipe(flights[:1], factors=(1.0,), sweeps=1).kwargs()).counts
+    with pytest.raises(ValueError, match="factors"):
+        A.refit_recipe(flights, factors=(0.0,))
+    with pytest.raises(ValueError, match="start"):
+        A.refit_recipe(flights, start={"q": 1.0})
+    with pytest.raises(ValueError, match="sweeps"):
+        A.refit_recipe(flights, sweeps=0)
 
 
 def test_fit_cv_is_a_maximum_and_near_the_truth():
@@ -220,6 +328,19 @@ def test_stored_tuning_is_the_training_optimum(stored):
     assert abs(best - stored["tuning"]["cv_ml"]["mean_loglik"]) <= 1e-9
     for dq, dr in ((1.1, 1), (1 / 1.1, 1), (1, 1.1), (1, 1 / 1.1)):
         assert ll(q * dq, r * dr) < best
+    for kind, v in stored["tuning"]["imm_ml"].items():      # the IMM baselines: a maximum too
+        seq = T._imm_sequence(kind, prep)[0]
+        n = int(np.sum(seq["op"] == 2))
+        x = np.array([v["q_cv"], v["q_turn"], v["r"]])
+
+        def ll_imm(y):
+            return float(np.sum(T._imm_scan(kind, seq, *y)[1])) / n
+
+        top = ll_imm(x)
+        assert abs(top - v["mean_loglik"]) <= 1e-9 * abs(top), kind
+        for i in range(3):
+            for f in (1.1, 1 / 1.1):
+                assert ll_imm(x * np.where(np.arange(3) == i, f, 1.0)) < top, (kind, i, f)
     tuned = [(prep, stored["tuning"]["cv_scan"])]
     for c, v in stored["tuning"]["cv_scan_by_category"].items():
         tuned.append(([p for p, f in zip(prep, flights) if adsb.category_of(f.name) == c], v))
@@ -243,8 +364,12 @@ def test_stored_test_figures_reproduce(stored, name):
     st = stored["tuning"]
     tun = T.CvTuning((st["cv_ml"]["q"], st["cv_ml"]["r"]), 0.0, (st["cv_scan"]["q"], st["cv_scan"]["r"]),
                      {c: (v["q"], v["r"]) for c, v in st["cv_scan_by_category"].items()},
-                     st["training_geo_mean_rmse_m"], st["reference"], ())
-    got = b.as_dict(b.judge(tun, [name]))["flights"][0]
+                     st["training_geo_mean_rmse_m"], st["reference"], (),
+                     {k: (v["q_cv"], v["q_turn"], v["r"], v["mean_loglik"]) for k, v in st["imm_ml"].items()})
+    refit = {c: A.RecipeConstants(*(tuple(v[k]) if isinstance(v[k], list) else v[k]
+                                    for k in A.RecipeConstants._fields))
+             for c, v in stored["recipe_refit"].items()}
+    got = b.as_dict(b.judge(tun, [name], refit=refit))["flights"][0]
     want = next(f for f in stored["test"]["flights"] if f["flight"] == name)
     assert got["n_rows"] == want["n_rows"] and got["block"] == want["block"]
     for m, w in want["methods"].items():

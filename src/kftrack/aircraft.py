@@ -90,7 +90,10 @@ the spike-hold rule (point 4, designed on ``featured/belevingsvlucht``). Their s
 chapter flights are therefore in-sample; the test flights are scored by
 :func:`kftrack.flightscore.evaluate` against a CV filter tuned on the training flights
 (``benchmarks/aircraft_split.py``, ``data/adsb/aircraft_split.json``). :func:`fit_recipe` refuses
-a test flight.
+a test flight. :func:`refit_recipe` is the scan as one call (a coordinate search of the geometric-mean
+one-step RMSE over the flights it is given, factors of 1/4 to 4 around each constant): a user refits
+the recipe on their own flights with it and passes ``**result.kwargs()`` to :func:`track_flight`;
+the benchmark refits the glider constants on the two training gliders with it.
 The maximum-likelihood fit of the recipe's innovations, :func:`fit_recipe` (cruise and manoeuvre
 ``q``, :math:`c_\lambda`, :math:`r_0`; the turn modes' ``q``, the sojourn times and the turn
 rate held), run to convergence on all rows of the seven chapter flights (29 637 terms; started
@@ -153,7 +156,8 @@ from ._validate import as_float_array
 
 __all__ = [
     "TrackResult", "track_flight", "one_step_predictions", "scored_rows", "cv_predictions",
-    "two_point_init", "fit_recipe", "reinit_gap", "innovation_loglik", "Q_MODES", "SOJOURN_S", "OMEGA_MODES",
+    "two_point_init", "fit_recipe", "refit_recipe", "RecipeConstants", "REFIT_FACTORS", "REFIT_PARAMETERS",
+    "reinit_gap", "innovation_loglik", "Q_MODES", "SOJOURN_S", "OMEGA_MODES",
     "TURN_DEG_S", "Q_ACCEL", "LAG_SCALE",
     "R_FLOOR", "FALSE_REJECTION", "LOST_AFTER", "REINIT_GAP_S", "MAX_SPEED_MPS", "COLLINEAR_DEG",
     "DT_WINDOW", "REASONS",
@@ -361,9 +365,69 @@ def _imm_predict(mu, xs, Ps, F, Q, Pi):
     return c, xp, Pp
 
 
+def _track_start(z0, z1, dt0, mu0, r_floor, lag_scale, dmax, delta=None):
+    r"""**Restart**: the IMM state ``(mu0, xs (r, 4), Ps (r, 4, 4))`` of a track started from two
+    positions ``dt0`` apart, every mode the same. At a track's start (``delta`` None) both positions
+    carry a white variance :math:`r_0 + 100` m²; a restart inside a track (``delta`` the nominal
+    interval) gives both the measurement covariance of point 2,
+    :math:`R = c_\lambda (\Delta^2/12) v v^\top + (r_0 + r_q) I` with ``v`` from the two points and
+    :math:`r_q` the quantisation of ``dmax`` decimals."""
+    r = mu0.size
+    x, P = two_point_init(z0, z1, dt0, r_floor + 100.0)
+    if delta is not None:
+        v = np.array([x[1], x[3]])
+        Rm = (lag_scale * delta * delta / 12.0 * np.outer(v, v)
+              + (r_floor + (_M_PER_DEG * 10.0 ** -dmax) ** 2 / 12.0) * np.eye(2))
+        ip, iv = [0, 2], [1, 3]
+        P = np.zeros((4, 4))
+        P[np.ix_(ip, ip)] = Rm
+        P[np.ix_(ip, iv)] = P[np.ix_(iv, ip)] = Rm / dt0
+        P[np.ix_(iv, iv)] = 2.0 * Rm / dt0 ** 2
+    return (mu0, np.tile(x, (r, 1)), np.tile(P, (r, 1, 1)))
+
+
+def _held_copy(zk, zf, spike, vk, tk, lat_k, lon_k, undo_pending):
+    """**Hold** (module docstring, point 4): is row ``zk`` a held copy of the ``spike``
+    ``(E, N, t, lat, lon)``? Nearer the spike than the filter's prediction ``zf``, and either moved
+    less than half of ``|v| (t - t_spike)`` from it, or (no undo pending) repeating one of its
+    coordinates exactly."""
+    d_s = math.hypot(zk[0] - spike[0], zk[1] - spike[1])
+    return d_s < math.hypot(zk[0] - zf[0], zk[1] - zf[1]) and (
+        d_s < 0.5 * math.hypot(vk[0], vk[1]) * (tk - spike[2])
+        or (not undo_pending and (lat_k == spike[3] or lon_k == spike[4])))
+
+
+def _interpolated(la, lo, tl, j2, j1, k) -> int:
+    """**Frame** of the resampler (point 3): 1 if row ``j1`` lies on the segment from row ``j2`` to
+    row ``k`` at the time-proportional point, to :data:`COLLINEAR_DEG` in latitude and longitude."""
+    w = (tl[j1] - tl[j2]) / (tl[k] - tl[j2])
+    if (abs(la[j2] + (la[k] - la[j2]) * w - la[j1]) <= COLLINEAR_DEG
+            and abs(lo[j2] + (lo[k] - lo[j2]) * w - lo[j1]) <= COLLINEAR_DEG):
+        return 1
+    return 0
+
+
+def _imm_update(xp, Pp, S00, S01, S11, det, y0, y1, infl):
+    r"""**IMM step**, the mode-matched update: per mode ``j`` the Kalman update of ``xp (r, 4)``,
+    ``Pp (r, 4, 4)`` with the innovation ``(y0, y1)`` and its covariance ``S`` (entries ``S00, S01,
+    S11``, determinant ``det``, each (r,)) inflated by ``infl`` (Huber-type, 1 for an ungated row),
+    :math:`K = P^- H^\top (\mathrm{infl}\, S)^{-1}`, :math:`P = \mathrm{sym}(P^- - K H P^-)`."""
+    Sinv = np.stack([np.stack([S11, -S01], -1), np.stack([-S01, S00], -1)], -2) / (det[:, None, None] * infl)
+    PHt = Pp[:, :, [0, 2]]                           # (r, 4, 2)
+    Kg = PHt @ Sinv
+    xs = xp + np.einsum("jab,jb->ja", Kg, np.stack([y0, y1], -1))
+    Ps = Pp - Kg @ PHt.transpose(0, 2, 1)
+    Ps = 0.5 * (Ps + Ps.transpose(0, 2, 1))
+    return xs, Ps
+
+
 def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, use_segments=True, robust=True,
          spike_undo=True):
-    """The recipe's loop (no validation). Returns per-row arrays and the log-likelihood."""
+    """The recipe's loop (no validation), row by row, of its named steps: the frame
+    (:func:`_frame_of`, :func:`_interpolated` for the resampler's rows), the hold of a spike
+    (:func:`_held_copy`), the restart (:func:`_track_start`), the IMM step (:func:`_imm_predict`,
+    the innovation and NIS gate, :func:`_imm_update`); the score is made from its predictions
+    (:func:`scored_rows`). Returns per-row arrays and the log-likelihood."""
     K = t.size
     r = len(q)
     pred = np.full((K, 2), np.nan)
@@ -396,19 +460,7 @@ def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, us
     log2pi = math.log(2.0 * math.pi)
 
     def start(z0, z1, dt0, delta=None):
-        x, P = two_point_init(z0, z1, dt0, r_floor + 100.0)
-        if delta is not None:
-            # a restart inside a track: both positions carry the measurement error of point 2,
-            # R = c (Delta^2/12) v v^T + r0 I (v from the two points), not a white r I
-            v = np.array([x[1], x[3]])
-            Rm = (lag_scale * delta * delta / 12.0 * np.outer(v, v)
-                  + (r_floor + (_M_PER_DEG * 10.0 ** -dmax) ** 2 / 12.0) * np.eye(2))
-            ip, iv = [0, 2], [1, 3]
-            P = np.zeros((4, 4))
-            P[np.ix_(ip, ip)] = Rm
-            P[np.ix_(ip, iv)] = P[np.ix_(iv, ip)] = Rm / dt0
-            P[np.ix_(iv, iv)] = 2.0 * Rm / dt0 ** 2
-        return (mu0, np.tile(x, (r, 1)), np.tile(P, (r, 1, 1)))
+        return _track_start(z0, z1, dt0, mu0, r_floor, lag_scale, dmax, delta)
 
     for k in range(K):
         if not okl[k]:
@@ -479,10 +531,7 @@ def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, us
             vk = mu @ xs[:, [1, 3]]
             if (spike[0] - pred[k][0]) * vk[0] + (spike[1] - pred[k][1]) * vk[1] > 0.0:
                 pred[k] = spike[:2]
-                d_s = math.hypot(zk[0] - spike[0], zk[1] - spike[1])
-                if d_s < math.hypot(zk[0] - zf[0], zk[1] - zf[1]) and (
-                        d_s < 0.5 * math.hypot(vk[0], vk[1]) * (tk - spike[2])
-                        or (undo is None and (la[k] == spike[3] or lo[k] == spike[4]))):
+                if _held_copy(zk, zf, spike, vk, tk, la[k], lo[k], undo is not None):
                     reason[k] = "repeated_position"
                     last_t, last_ll = tk, (la[k], lo[k])
                     if undo is not None:
@@ -511,10 +560,7 @@ def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, us
         s1 = 0
         if len(rows) >= 2:
             j2 = rows[-2]
-            w = (tl[j1] - tl[j2]) / (tk - tl[j2])
-            if (abs(la[j2] + (la[k] - la[j2]) * w - la[j1]) <= COLLINEAR_DEG
-                    and abs(lo[j2] + (lo[k] - lo[j2]) * w - lo[j1]) <= COLLINEAR_DEG):
-                s1 = 1
+            s1 = _interpolated(la, lo, tl, j2, j1, k)
             status[j1] = s1
             interp[j1] = bool(s1)
             counts.setdefault((status.get(j2, 0), digits[j1]), [1.0, 1.0])[s1] += 1.0
@@ -584,12 +630,7 @@ def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, us
         else:
             missed = []
             reason_k = "used"
-        Sinv = np.stack([np.stack([S11, -S01], -1), np.stack([-S01, S00], -1)], -2) / (det[:, None, None] * infl)
-        PHt = Pp[:, :, [0, 2]]                           # (r, 4, 2)
-        Kg = PHt @ Sinv
-        xs = xp + np.einsum("jab,jb->ja", Kg, np.stack([y0, y1], -1))
-        Ps = Pp - Kg @ PHt.transpose(0, 2, 1)
-        Ps = 0.5 * (Ps + Ps.transpose(0, 2, 1))
+        xs, Ps = _imm_update(xp, Pp, S00, S01, S11, det, y0, y1, infl)
         mu = lik / tot
         tent = (mu, xs, Ps)
         rows.append(k)
@@ -927,3 +968,150 @@ def fit_recipe(flights, x0=(Q_MODES[0], Q_MODES[1], LAG_SCALE, R_FLOOR), xatol: 
     if not res.success:
         warnings.warn(f"fit_recipe stopped before converging: {res.message}", RuntimeWarning, stacklevel=2)
     return tuple(float(v) for v in np.exp(res.x))
+
+
+class RecipeConstants(NamedTuple):
+    """Output of :func:`refit_recipe`: the recipe's constants, named as the keywords of
+    :func:`track_flight` (``track_flight(t, lat, lon, **c.kwargs())``).
+
+    Attributes
+    ----------
+    q : (r,) spectral densities of the modes, m²/s³ (cruise, manoeuvre, left turn, right turn).
+    tau : (r,) mean sojourn times, s.
+    omega : (r,) turn rates, rad/s.
+    lag_scale : :math:`c_\\lambda`; r_floor : :math:`r_0`, m².
+    score : geometric mean over the flights of the one-step RMSE on the scored rows (m), with these
+        constants; start_score : the same with the constants the scan started from.
+    evaluations : number of constant sets scored.
+    """
+
+    q: tuple
+    tau: tuple
+    omega: tuple
+    lag_scale: float
+    r_floor: float
+    score: float
+    start_score: float
+    evaluations: int
+
+    def kwargs(self) -> dict:
+        """``{"q", "tau", "omega", "lag_scale", "r_floor"}`` for :func:`track_flight`."""
+        return {"q": self.q, "tau": self.tau, "omega": self.omega, "lag_scale": self.lag_scale,
+                "r_floor": self.r_floor}
+
+
+#: Multiplicative steps :func:`refit_recipe` tries around each constant.
+REFIT_FACTORS = (0.25, 0.5, 2.0, 4.0)
+#: The constants :func:`refit_recipe` scans, in its order.
+REFIT_PARAMETERS = ("q_cruise", "q_manoeuvre", "q_turn", "turn_deg_s", "lag_scale", "r_floor")
+
+
+def _constants(p: dict):
+    """``(q, tau, omega, lag_scale, r_floor)`` of a dict of the scanned parameters."""
+    w = math.radians(p["turn_deg_s"])
+    return ((p["q_cruise"], p["q_manoeuvre"], p["q_turn"], p["q_turn"]), SOJOURN_S, (0.0, 0.0, w, -w),
+            p["lag_scale"], p["r_floor"])
+
+
+def _geo_rmse(prepared, q, tau, omega, lag_scale, r_floor, gamma, spike_undo):
+    """Geometric mean over prepared flights of the recipe's one-step RMSE on the scored rows (m)."""
+    logs = []
+    for t, lat, lon, enu, ok, m in prepared:
+        pred = _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, REINIT_GAP_S, True,
+                    spike_undo=spike_undo)[0]
+        d = pred[m] - enu[m]
+        logs.append(0.5 * math.log(float(np.mean(np.sum(d * d, axis=1)))))
+    return math.exp(sum(logs) / len(logs))
+
+
+def refit_recipe(flights, *, start=None, factors=REFIT_FACTORS, sweeps: int = 2,
+                 spike_undo: bool = True) -> RecipeConstants:
+    r"""Re-derive the recipe's constants on ``flights`` by the chapter's training procedure: a scan
+    of the one-step RMSE (the score the chapter reports), never a test flight.
+
+    Coordinate search: for each constant of :data:`REFIT_PARAMETERS` in turn (the cruise, manoeuvre
+    and turn modes' spectral densities, the turn modes' rate in deg/s, :math:`c_\lambda`,
+    :math:`r_0`; the sojourn times held at :data:`SOJOURN_S`), the recipe (:func:`track_flight`) is
+    run over every flight with the constant multiplied by each of ``factors``, the others held, and
+    the value with the lowest score is kept,
+
+    .. math:: J = \exp\Big(\frac1F\sum_f \log \mathrm{RMSE}_f\Big),
+
+    the geometric mean over the ``F`` flights of the one-step RMSE on :func:`scored_rows`. The
+    sweep over all constants is repeated up to ``sweeps`` times, stopping early when a sweep
+    changes nothing. :math:`J` never rises from the start. The likelihood fit
+    (:func:`fit_recipe`) is the other tuning; on the chapter flights it lowers the median error and
+    raises the RMSE (module docstring).
+
+    Parameters
+    ----------
+    flights : sequence of :class:`kftrack.adsb.Flight` (anything with ``t_s``, ``lat_deg``,
+        ``lon_deg``; a user's own flights), never a test flight (``kftrack.adsb.TEST_FLIGHTS``:
+        ValueError).
+    start : None (the module's constants) or a dict of some of :data:`REFIT_PARAMETERS`, positive.
+    factors : positive multipliers tried around each constant (1 is always kept).
+    sweeps : positive int, the most sweeps.
+    spike_undo : as in :func:`track_flight`.
+
+    Returns
+    -------
+    RecipeConstants
+        Pass ``**result.kwargs()`` to :func:`track_flight`.
+
+    Examples
+    --------
+    >>> from kftrack import adsb, aircraft
+    >>> fl = adsb.load_flight("gliders/cevennes")
+    >>> short = fl._replace(**{k: getattr(fl, k)[:100] for k in adsb.COLUMNS})     # a user's own flights
+    >>> c = aircraft.refit_recipe([short], factors=(2.0,), sweeps=1)                  # a short scan
+    >>> c.score <= c.start_score, c.evaluations
+    (True, 7)
+    >>> res = aircraft.track_flight(short.t_s, short.lat_deg, short.lon_deg, **c.kwargs())
+    """
+    from .adsb import refuse_test_flights
+    cols = _flight_columns(flights)
+    refuse_test_flights(flights)
+    p = {"q_cruise": Q_MODES[0], "q_manoeuvre": Q_MODES[1], "q_turn": Q_MODES[2], "turn_deg_s": TURN_DEG_S,
+         "lag_scale": LAG_SCALE, "r_floor": R_FLOOR}
+    if start is not None:
+        if not isinstance(start, dict) or not set(start) <= set(p):
+            raise ValueError(f"start must be a dict with keys among {REFIT_PARAMETERS}, got {start!r}")
+        p.update({k: _positive(v, f"start[{k!r}]") for k, v in start.items()})
+    fac = np.atleast_1d(np.asarray(factors, dtype=float))
+    if fac.ndim != 1 or fac.size == 0 or not np.all(np.isfinite(fac)) or np.any(fac <= 0):
+        raise ValueError(f"factors must be positive finite numbers, got {factors!r}")
+    if isinstance(sweeps, bool) or not isinstance(sweeps, (int, np.integer)) or sweeps < 1:
+        raise ValueError(f"sweeps must be a positive int, got {sweeps!r}")
+    prepared = []
+    for t, lat, lon in cols:
+        enu, _, ok = _frame_of(t, lat, lon)
+        m = scored_rows(t, lat, lon)
+        if not m.any():
+            raise ValueError("every flight must have scored rows (at least three accepted rows in a track)")
+        prepared.append((t, lat, lon, enu, ok, m))
+    gamma = _gamma(FALSE_REJECTION)
+    undo = bool(spike_undo)
+    seen = {}
+
+    def score(q):
+        key = tuple(sorted(q.items()))
+        if key not in seen:
+            seen[key] = _geo_rmse(prepared, *_constants(q), gamma, undo)
+        return seen[key]
+
+    best = score(p)
+    first = best
+    for _ in range(int(sweeps)):
+        changed = False
+        for name in REFIT_PARAMETERS:
+            base = p[name]
+            for f in fac.tolist():
+                trial = dict(p, **{name: base * f})
+                s = score(trial)
+                if s < best:
+                    best, p, changed = s, trial, True
+        if not changed:
+            break
+    q, tau, omega, lag_scale, r_floor = _constants(p)
+    return RecipeConstants(tuple(float(v) for v in q), tuple(float(v) for v in tau), tuple(float(v) for v in omega),
+                           float(lag_scale), float(r_floor), float(best), float(first), len(seen))
