@@ -22,6 +22,7 @@ from kftrack.compare import ComparisonResult, HolmResult, Sweep, compare_runs, c
 # Round-off: every quantity is a handful of sums and products of O(1) numbers over n <= 10
 # values, so its relative error is below ~100 eps; scipy's t quantiles are accurate to ~1e-14.
 RTOL = 1e-12
+EPS = float(np.finfo(float).eps)
 # Binomial bounds: 99.9 % two-sided (a correct implementation fails one such check in 1000).
 BOUND = 0.999
 
@@ -97,63 +98,137 @@ def test_log_ratio_is_the_t_interval_of_the_mean_log_ratio_reported_as_a_ratio()
 
 
 # ------------------------------------------------------------------------------------------
-# no spread: every paired difference the same (identical runs), known exactly
+# no spread: every paired difference the same (identical runs, or by chance), exact tests
 # ------------------------------------------------------------------------------------------
-def test_identical_runs_are_equal_exactly_not_a_zero_width_interval():
+def test_identical_runs_are_equal_in_each_run_not_a_zero_width_interval():
     for margin in (None, 0.1):
         same = compare_runs([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], margin=margin)
         assert same.exact and same.verdict == "equal" and same.kind == "equal"
         assert same.se == 0 and same.mde == 0 and same.ci == (0.0, 0.0) and same.p_value == 1
-        assert same.equivalent is (None if margin is None else True)
-        assert str(same) == ("A's value equals B's (on each of the 3 paired runs, to round-off: "
+        # a statement about these runs, not a population equality: the sentence says "in each of the 3"
+        assert str(same) == ("A's value equals B's in each of the 3 paired runs (to round-off; these runs only, "
                              "no interval to compute): equal")
+    # equivalence from no difference in 3 runs is a sign-test TOST: one-sided 2^-3 = 0.125, not shown at 0.95
+    assert same.p_equivalence == 0.125 and same.equivalent is False
+    many = compare_runs(np.arange(1.0, 9.0), np.arange(1.0, 9.0), margin=0.1)  # 2^-8 = 0.0039
+    assert many.verdict == "equal" and many.p_equivalence == 2.0**-8 and many.equivalent is True
     ratio = compare_runs([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], scale="log_ratio")
     assert ratio.exact and ratio.verdict == "equal" and ratio.estimate == 1.0 and ratio.ci == (1.0, 1.0)
+    unpaired = compare_runs([2.0, 2.0, 2.0], [2.0, 2.0], paired=False)
+    assert unpaired.exact and unpaired.verdict == "equal" and unpaired.p_value == 1
+    assert "equals B's in each of the 3 + 2 unpaired runs (one value on every run of either method" in str(unpaired)
 
 
-def test_a_constant_difference_is_lower_or_higher_exactly():
-    shifted = compare_runs([2.0, 3.0, 4.0], [1.0, 2.0, 3.0])
-    assert shifted.exact and shifted.p_value == 0 and shifted.verdict == "higher"
-    assert shifted.estimate == 1.0 and shifted.ci == (1.0, 1.0) and shifted.se == 0
-    assert shifted.sentence(unit="m") == ("A's value minus B's is 1 m (the same difference on each of the 3 paired "
-                                          "runs, to round-off: no interval to compute): higher")
-    inside = compare_runs([2.0, 3.0, 4.0], [1.0, 2.0, 3.0], margin=1.5)
-    outside = compare_runs([2.0, 3.0, 4.0], [1.0, 2.0, 3.0], margin=0.5)
-    assert inside.equivalent is True and inside.verdict == "higher" and str(inside).endswith("higher, within ±1.5")
-    assert outside.equivalent is False and str(outside).endswith("): higher")
-    b = np.array([1.0, 1.2, 0.9, 1.1])
-    lower = compare_runs(0.9 * b, b, scale="log_ratio")
+def test_zero_spread_by_chance_gets_the_exact_sign_test_paired():
+    """0/1 data: all-ones against all-zeros in n paired runs is the same difference by chance.
+    The exact two-sided sign test gives p = 2^(1-n): 0.25 at n = 3, 0.0625 at n = 5, 0.03125 at n = 6."""
+    for n, p, kind in ((3, 0.25, "not resolved"), (5, 0.0625, "not resolved"), (6, 0.03125, "higher")):
+        r = compare_runs(np.ones(n), np.zeros(n))
+        assert r.exact and r.estimate == 1.0 and r.se == 0 and r.ci == (1.0, 1.0)
+        assert r.p_value == p == pytest.approx(stats.binomtest(n, n).pvalue, rel=RTOL)  # scipy's exact sign test
+        assert r.kind == kind, (n, r.verdict)
+    r = compare_runs(np.ones(3), np.zeros(3))
+    assert r.verdict == "not resolved by 3 runs"
+    assert str(r) == ("A's value minus B's is 1 (the same difference in each of the 3 paired runs, to round-off; "
+                      "exact sign test p = 0.25): not resolved by 3 runs (the sign test needs 6 runs of one sign "
+                      "for p < 0.05)")
+    assert compare_runs(np.zeros(5), np.ones(5), level=0.9).verdict == "lower"  # 0.0625 < 0.1
+    b = np.array([1.0, 1.2, 0.9, 1.1, 1.05, 0.95])
+    lower = compare_runs(0.9 * b, b, scale="log_ratio")  # the same ratio on 6 runs: p = 1/32
     assert lower.exact and lower.verdict == "lower" and lower.estimate == pytest.approx(0.9, rel=RTOL)
-    assert lower.sentence("A", "B", "RMSE") == ("A's RMSE is 0.9× B's (the same ratio on each of the 4 paired runs, "
-                                                "to round-off: no interval to compute): lower")
-    unpaired = compare_runs([2.0, 2.0, 2.0], [1.0, 1.0, 1.0, 1.0], paired=False)
-    assert unpaired.exact and unpaired.verdict == "higher" and unpaired.estimate == 1.0
-    assert "3 + 4 unpaired runs, each method the same value on every run" in str(unpaired)
+    assert lower.sentence("A", "B", "RMSE") == ("A's RMSE is 0.9× B's (the same ratio in each of the 6 paired runs, "
+                                                "to round-off; exact sign test p = 0.031): lower")
+    # TOST from the one-sided sign tests: 2^-6 = 0.016 inside the margin; outside, no equivalence
+    inside = compare_runs(np.arange(6.0) + 1.0, np.arange(6.0), margin=1.5)
+    outside = compare_runs(np.arange(6.0) + 1.0, np.arange(6.0), margin=0.5)
+    assert inside.p_equivalence == 2.0**-6 and inside.equivalent is True
+    assert inside.verdict == "higher" and str(inside).endswith("higher, yet equivalent within ±1.5")
+    assert outside.p_equivalence == 1 and outside.equivalent is False and str(outside).endswith("): higher")
 
 
-def test_round_off_spread_counts_as_none_and_more_than_round_off_does_not():
+def test_zero_spread_by_chance_gets_the_exact_permutation_test_unpaired():
+    """3 + 3 all-ones against all-zeros: Fisher's exact test (the permutation test of the means for two
+    values) gives p = 2 / C(6, 3) = 0.1; 3 + 4: 1 / C(7, 3) = 1/35 (no mirror labelling as extreme)."""
+    r = compare_runs(np.ones(3), np.zeros(3), paired=False)
+    assert r.exact and r.estimate == 1.0 and r.p_value == pytest.approx(0.1, rel=RTOL)
+    assert r.p_value == pytest.approx(stats.fisher_exact([[3, 0], [0, 3]]).pvalue, rel=RTOL)
+    assert r.verdict == "not resolved by 3 + 3 runs"
+    assert str(r) == ("A's value minus B's is 1 (3 + 3 unpaired runs, each method the same value on every run, "
+                      "to round-off; exact permutation test p = 0.1): not resolved by 3 + 3 runs")
+    r = compare_runs([2.0, 2.0, 2.0], [1.0, 1.0, 1.0, 1.0], paired=False)
+    assert r.p_value == pytest.approx(1 / 35, rel=RTOL)
+    assert r.p_value == pytest.approx(stats.fisher_exact([[3, 0], [0, 4]]).pvalue, rel=RTOL)
+    assert r.verdict == "higher" and r.estimate == 1.0
+    with_margin = compare_runs([2.0, 2.0, 2.0], [1.0, 1.0, 1.0, 1.0], paired=False, margin=1.5)
+    assert with_margin.p_equivalence == pytest.approx(1 / 35, rel=RTOL) and with_margin.equivalent
+
+
+def test_exact_results_enter_holm_with_their_exact_p_values():
+    six = compare_runs(np.ones(6), np.zeros(6))  # sign test p = 1/32: "higher" alone
+    equal = compare_runs([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])
+    noisy = compare_runs([1.0, 2.0, 3.0], [1.5, 2.0, 2.0])
+    family = holm([six, equal, noisy])
+    # Holm over 3: 3 * 1/32 = 0.094 > 0.05, so the exact result is adjusted like any other
+    assert family[0].p_adjusted == pytest.approx(3 / 32, rel=RTOL) and family[0].kind == "not resolved"
+    assert [r.kind for r in family[1:]] == ["equal", "not resolved"]
+    assert "exact sign test p = 0.031; Holm over 3 tests, adjusted p = 0.094" in str(family[0])
+    np.testing.assert_allclose([r.p_adjusted for r in family],
+                               holm([r.p_value for r in (six, equal, noisy)]).p_adjusted, rtol=RTOL)
+    base = np.arange(1.0, 7.0)
+    sw = compare_sweep([0.0, 1.0], lambda s: (base - s, base))
+    assert [r.kind for r in sw.results] == ["equal", "lower"] and sw.flips == ((0.0, 1.0),)
+
+
+def test_round_off_bound_is_per_run():
     b = np.array([0.3, 1.7, 2.9, 10.1, 0.01])
-    a = b + 0.1  # d = 0.1 up to the rounding of each sum: spread ~ eps * 10
-    spread = np.ptp(a - b)
-    assert 0 < spread < 64 * np.finfo(float).eps * 10.1  # the case is the one meant: real round-off spread
-    r = compare_runs(a, b)
+    a = b + 0.1  # d = 0.1 up to the rounding of each sum: run i spreads by ~ eps * s_i
+    d, s = a - b, np.maximum(a, b)
+    assert 0 < np.ptp(d) and np.max(d - 64 * EPS * s) <= np.min(d + 64 * EPS * s)  # the case meant: real round-off
+    r = compare_runs(a, b, level=0.9)  # 5 runs of one sign: sign test p = 1/16 < 0.1
     assert r.exact and r.verdict == "higher" and "is 0.1 (the same difference" in str(r)
-    twin = compare_runs(b * (1 + 2 * np.finfo(float).eps), b)  # a difference of round-off size is 0
+    twin = compare_runs(b * (1 + 2 * EPS), b)  # a difference of round-off size is 0
     assert twin.exact and twin.verdict == "equal" and twin.estimate == 0
-    # a spread of 1e-9, far above the round-off bound (64 eps * 10 = 1.4e-13), is noise to test against
+    # a spread of 1e-9, far above the round-off bound (64 eps * 2 * 10.1 = 2.9e-13), is noise to test against
     noisy = compare_runs(b + 0.1 + 1e-9 * _standardised(5), b)
     assert not noisy.exact and noisy.se > 0 and noisy.verdict == "higher" and "95 % CI" in str(noisy)
+    # one run at 1e6 must not hide a real relative spread of 2e-9 in the others: a bound from the largest value
+    # over all runs (64 eps * 1e6 = 1.4e-8) would call this "no spread"; run by run it is 64 eps * 2 = 2.8e-14
+    n = 8
+    big = np.r_[1e6, np.linspace(1.0, 2.0, n - 1)]
+    a = big + np.r_[0.0, 2e-9 * (0.3 + _standardised(n - 1))]  # real spread (relative <= 2e-9 * 2.3)
+    d = a - big
+    assert np.ptp(d) <= 64 * EPS * 1e6  # the global bound would have called it no spread ("equal")
+    r = compare_runs(a, big)
+    assert not r.exact and r.se > 0
+    assert r.p_value == pytest.approx(stats.ttest_rel(a, big).pvalue, rel=1e-9)  # d is exact to ~1e-7 relative
+    assert r.verdict == "not resolved by 8 runs"
+    # the analogue for log ratios: s_i = max(|log a_i|, |log b_i|, 1), so the 1e6 run (log 13.8) widens only itself
+    r = compare_runs(a, big, scale="log_ratio")
+    assert not r.exact and r.verdict == "not resolved by 8 runs"
 
 
-def test_exact_results_keep_their_verdict_in_holm_and_sweeps():
-    exact = compare_runs([2.0, 3.0, 4.0], [1.0, 2.0, 3.0])
-    equal = compare_runs([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], margin=0.1)
-    noisy = compare_runs([1.0, 2.0, 3.0], [1.5, 2.0, 2.0])
-    family = holm([exact, equal, noisy])
-    assert [r.verdict for r in family] == ["higher", "equal", "not resolved by 3 runs"]
-    assert all(r.tests == 4 for r in family) and family[1].equivalent is True
-    sw = compare_sweep([0.0, 1.0], lambda s: (np.array([1.0, 2.0, 3.0]) - s, np.array([1.0, 2.0, 3.0])))
-    assert [r.kind for r in sw.results] == ["equal", "lower"] and sw.flips == ((0.0, 1.0),)
+def test_rtol_states_the_round_off_of_recursive_quantities():
+    """Joseph against short-form covariance updates (identical in exact arithmetic) give per-run values
+    that differ by about 1.4e-10 relative after 500 steps: far above 64 eps, so by default a t test, which
+    reads the round-off as a result. rtol=1e-9 states that round-off level: no difference."""
+    n = 20
+    b = np.linspace(1.0, 2.0, n)  # per-run RMSE of the short form
+    t = stats.t.isf(0.015, n - 1)  # the t statistic of two-sided p = 0.03
+    w = -t / math.sqrt(n) + _standardised(n)  # mean -t / sqrt(n), sample sd 1
+    a = b + 1.4e-10 * w / np.abs(w).max()  # the Joseph form: at most 1.4e-10 (relative, b >= 1) from b
+    default = compare_runs(a, b)
+    assert not default.exact and default.verdict == "lower"
+    # t is scale-free; rounding a (|a| < 2) moves each d_i by at most eps = 2.2e-16, 3e-6 of their sample sd
+    # (1.4e-10 / 1.91 = 7.3e-11), so t by ~1e-5 relative and p by < 1e-4 (|d log p / d log t| = 2.4 at t = 2.36)
+    assert default.p_value == pytest.approx(0.03, rel=1e-3)
+    stated = compare_runs(a, b, rtol=1e-9)
+    assert stated.exact and stated.verdict == "equal" and stated.p_value == 1 and stated.rtol == 1e-9
+    assert str(stated) == ("A's value equals B's in each of the 20 paired runs (to the stated round-off 1e-09; "
+                           "these runs only, no interval to compute): equal")
+    assert compare_runs(a, b, scale="log_ratio", rtol=1e-9).verdict == "equal"
+    # an rtol below the spread leaves the t test in place
+    below = compare_runs(a, b, rtol=1e-11)
+    assert not below.exact and below.verdict == "lower" and below.p_value == default.p_value
 
 
 def test_result_is_immutable():
@@ -376,6 +451,8 @@ def test_docstring_examples_hold():
     (([1.0, 0.0], [1.0, 2.0]), {"scale": "log_ratio"}, ValueError, "a must be > 0 for scale='log_ratio'"),
     (([1.0, 2.0], [1.0, 2.0]), {"scale": "ratio"}, ValueError, "scale must be one of"),
     (([1.0, 2.0], [1.0, 2.0]), {"paired": "yes"}, TypeError, "paired must be True or False"),
+    (([1.0, 2.0], [1.0, 2.0]), {"rtol": -1e-9}, ValueError, r"rtol must be a relative round-off level in \[0, 1\)"),
+    (([1.0, 2.0], [1.0, 2.0]), {"rtol": "1e-9"}, TypeError, "rtol must be a real number"),
     ((None, [1.0, 2.0]), {}, TypeError, "a must be an array of real numbers"),
 ])
 def test_bad_input_names_the_argument(args, kwargs, exc, match):

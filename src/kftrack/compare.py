@@ -55,11 +55,13 @@ __all__ = ["ComparisonResult", "compare_runs", "HolmResult", "holm", "Sweep", "c
 
 _SCALES = ("difference", "log_ratio")
 _POWER = 0.8  # the power at which the minimal detectable effect is stated
-# Round-off bound for "no spread": per-run values that differ only by round-off. Each value
-# (and its logarithm) carries a relative error of at most a few dozen roundings of eps/2 from
-# the code that made it, and the subtraction one more, so differences identical in exact
-# arithmetic spread by less than 64 * eps * (largest |value| on the analysis scale, at least 1
-# for logarithms); anything wider is treated as real spread and goes through the t test.
+# Default round-off level for "no spread" (``rtol=None``): per-run values that differ only by
+# round-off. Each value carries a relative error of at most a few dozen roundings of eps/2 from
+# the code that made it, and the subtraction one more, so the differences of run i and run j,
+# identical in exact arithmetic, differ by at most 64 eps (s_i + s_j), s_i = max(|a_i|, |b_i|)
+# (logarithms: a relative error r of a value is an absolute error r of its logarithm, so
+# s_i = max(|log a_i|, |log b_i|, 1)); anything wider is real spread and goes through the t
+# test. Quantities computed through many more roundings (recursive filters) need a stated rtol.
 _ROUNDOFF = 64 * float(np.finfo(float).eps)
 
 
@@ -81,12 +83,13 @@ class ComparisonResult:
     ci : ``(low, high)`` two-sided confidence interval of ``estimate`` at ``level``:
         :math:`\delta \pm t_{1-\alpha/2,\nu}\,\mathrm{se}` (exponentiated for a ratio).
     se : standard error of ``delta``.
-    p_value : two-sided p-value of :math:`H_0: \delta = 0` (ratio 1).
+    p_value : two-sided p-value of :math:`H_0: \delta = 0` (ratio 1): the t test's, or an exact
+        test's when ``exact``.
     mde : minimal detectable effect at 80 % power, on the analysis scale,
         :math:`(t_{1-\alpha/2,\nu} + t_{0.8,\nu})\,\mathrm{se}` (see :func:`compare_runs`).
     verdict : ``"lower"``, ``"higher"``, ``"equivalent within ±m"`` or
         ``"not resolved by N runs"`` (``"N + M runs"`` unpaired); ``"equal"`` only when
-        ``exact``.
+        ``exact`` and the difference is 0 in every run.
     delta : the estimate on the analysis scale (difference, or mean log ratio).
     df : degrees of freedom :math:`\nu` of the t distribution (``n - 1`` paired; Welch).
     level : confidence level, :math:`1 - \alpha`.
@@ -105,10 +108,13 @@ class ComparisonResult:
     exact : the runs show no spread beyond round-off (paired: every run gives the same
         difference; unpaired: every run of each method gives the same value), so the
         difference on these runs is known exactly: ``se = mde = 0``, ``ci = (estimate,
-        estimate)``, ``p_value`` 0 (or 1 when the difference is 0) and the verdict
-        ``"lower"``, ``"higher"`` or ``"equal"`` (an exact verdict, not a test's).
-    tolerance : the round-off bound on the analysis scale under which spread counts as none
-        (and a difference as 0), ``64 eps`` times the largest value (see :func:`compare_runs`).
+        estimate)``; ``p_value`` is that of an exact test (paired: the sign test,
+        :math:`2^{1-n}` for :math:`n` differences of one sign; unpaired: the permutation
+        test, :math:`1/\binom{N}{n_a}`, twice that when :math:`n_a = n_b`), or 1 when the
+        difference is 0 in every run (verdict ``"equal"``).
+    tolerance : the round-off bound on the analysis scale, ``rtol`` times the largest
+        :math:`s_i` (see :func:`compare_runs`); the exact estimate shows no digit below it.
+    rtol : the round-off level stated by the caller (``None``: the default ``64 eps``).
     """
 
     estimate: float
@@ -132,6 +138,7 @@ class ComparisonResult:
     p_equivalence_adjusted: float | None
     exact: bool = False
     tolerance: float = 0.0
+    rtol: float | None = None
 
     @property
     def n(self) -> int:
@@ -170,44 +177,60 @@ class ComparisonResult:
         est, lo, hi = _fmt(self.estimate, se), _fmt(self.ci[0], se, ref), _fmt(self.ci[1], se, ref)
         interval = f"{lo}–{hi}" if self.ci[0] >= 0 else f"{lo} to {hi}"
         runs = f"{self.n_a} paired runs" if self.paired else f"{self.n_a} + {self.n_b} unpaired runs, Welch"
-        where = f"{_pct(self.level)} CI {interval}{u}, {runs}"
-        if self.tests > 1:
-            p_adj = self.p_equivalence_adjusted if self.kind == "equivalent" else self.p_adjusted
-            what = "TOST p" if self.kind == "equivalent" else "p"
-            where += f"; Holm over {self.tests} tests, adjusted {what} {_fmt_p(p_adj)}"
+        where = f"{_pct(self.level)} CI {interval}{u}, {runs}{self._holm_text()}"
         head = (f"{name_a}'s {quantity} is {est}× {name_b}'s" if ratio
                 else f"{name_a}'s {quantity} minus {name_b}'s is {est}{u}")
-        word = self.verdict
-        if self.kind == "equivalent":
-            word = f"equivalent within ±{_margin_text(self.margin, ratio)}{u}"
-        elif self.kind == "not resolved":
+        if self.kind == "not resolved":
             m = _sig2(self.mde)
-            word += (f" (80 % power only for ratios outside {_sig2(math.exp(-self.mde))}–{_sig2(math.exp(self.mde))})"
-                     if ratio else f" (80 % power only for differences beyond ±{m}{u})")
-        elif self.equivalent:
-            word += f", yet equivalent within ±{_margin_text(self.margin, ratio)}{u}"
+            word = self.verdict + (
+                f" (80 % power only for ratios outside {_sig2(math.exp(-self.mde))}–{_sig2(math.exp(self.mde))})"
+                if ratio else f" (80 % power only for differences beyond ±{m}{u})")
+        else:
+            word = self._word(u)
         return f"{head} ({where}): {word}"
 
+    def _holm_text(self) -> str:
+        """``"; Holm over k tests, adjusted p = ..."`` for a Holm-adjusted result, else ``""``."""
+        if self.tests == 1:
+            return ""
+        p_adj = self.p_equivalence_adjusted if self.kind == "equivalent" else self.p_adjusted
+        what = "TOST p" if self.kind == "equivalent" else "p"
+        return f"; Holm over {self.tests} tests, adjusted {what} {_fmt_p(p_adj)}"
+
+    def _word(self, u: str) -> str:
+        """The verdict with its margin and unit (all kinds but "not resolved")."""
+        ratio = self.scale == "log_ratio"
+        if self.kind == "equivalent":
+            return f"equivalent within ±{_margin_text(self.margin, ratio)}{u}"
+        if self.equivalent and self.kind != "equal":
+            return f"{self.verdict}, yet equivalent within ±{_margin_text(self.margin, ratio)}{u}"
+        return self.verdict
+
     def _exact_sentence(self, name_a: str, name_b: str, quantity: str, unit: str) -> str:
-        """The sentence of an exact result: the difference on every run, no interval."""
+        """The sentence of an exact result: the difference in every run, the exact test's p."""
         ratio = self.scale == "log_ratio"
         u = f" {unit}" if unit and not ratio else ""
-        runs = (f"each of the {self.n_a} paired runs" if self.paired
-                else f"{self.n_a} + {self.n_b} unpaired runs, each method the same value on every run")
-        what = "ratio" if ratio else "difference"
-        if self.kind == "equal":
-            head = f"{name_a}'s {quantity} equals {name_b}'s"
-            why = f"{'on ' if self.paired else ''}{runs}, to round-off: no interval to compute"
+        runs = f"{self.n_a} paired runs" if self.paired else f"{self.n_a} + {self.n_b} unpaired runs"
+        to = "to round-off" if self.rtol is None else f"to the stated round-off {self.rtol:g}"
+        if self.kind == "equal":  # a statement about these runs, not about the population
+            one = "" if self.paired else "one value on every run of either method, "
+            return (f"{name_a}'s {quantity} equals {name_b}'s in each of the {runs} "
+                    f"({one}{to}; these runs only, no interval to compute): equal")
+        tol = self.tolerance * self.estimate if ratio else self.tolerance
+        est = _fmt_exact(self.estimate, tol)
+        head = (f"{name_a}'s {quantity} is {est}× {name_b}'s" if ratio
+                else f"{name_a}'s {quantity} minus {name_b}'s is {est}{u}")
+        if self.paired:
+            why = f"the same {'ratio' if ratio else 'difference'} in each of the {runs}, {to}; exact sign test"
         else:
-            tol = self.tolerance * self.estimate if ratio else self.tolerance
-            est = _fmt_exact(self.estimate, tol)
-            head = (f"{name_a}'s {quantity} is {est}× {name_b}'s" if ratio
-                    else f"{name_a}'s {quantity} minus {name_b}'s is {est}{u}")
-            why = (f"the same {what} on {runs}, to round-off: no interval to compute" if self.paired
-                   else f"{runs}, to round-off: no interval to compute")
-        word = self.verdict
-        if self.margin is not None and self.equivalent and self.kind != "equal":
-            word += f", within ±{_margin_text(self.margin, ratio)}{u}"
+            why = f"{runs}, each method the same value on every run, {to}; exact permutation test"
+        why += f" p {_fmt_p(self.p_value)}{self._holm_text()}"
+        word = self._word(u)
+        if self.kind == "not resolved" and self.paired and self.tests == 1:
+            alpha, k = 1.0 - self.level, 2
+            while 2.0 ** (1 - k) >= alpha:
+                k += 1
+            word += f" (the sign test needs {k} runs of one sign for p < {alpha:.3g})"
         return f"{head} ({why}): {word}"
 
     def __str__(self) -> str:
@@ -215,7 +238,7 @@ class ComparisonResult:
 
 
 def compare_runs(a, b, *, paired: bool = True, scale: str = "difference", level: float = 0.95,
-                 margin: float | None = None) -> ComparisonResult:
+                 margin: float | None = None, rtol: float | None = None) -> ComparisonResult:
     r"""Compare per-run values ``a`` of one method with ``b`` of another: estimate, two-sided
     confidence interval, p-value, minimal detectable effect and a verdict word.
 
@@ -255,15 +278,30 @@ def compare_runs(a, b, *, paired: bool = True, scale: str = "difference", level:
 
     No spread (``exact=True``): when every paired difference is the same up to round-off
     (unpaired: every value of ``a`` the same and every value of ``b`` the same), there is no
-    run-to-run noise to test against: the difference on these runs is known exactly. The
-    result then says so instead of printing a zero-width interval: ``se = mde = 0``,
-    ``ci = (estimate, estimate)``, and the verdict ``"lower"``, ``"higher"`` or, when the
-    difference is itself within round-off of 0, ``"equal"`` (TOST, when a margin is given,
-    is decided exactly: equivalent when the difference lies inside the region). The
-    round-off bound is :math:`64\,\varepsilon \max(|g(a)|, |g(b)|)` (at least
-    :math:`64\,\varepsilon` for ``log_ratio``): the spread of differences that are identical in
-    exact arithmetic but computed through a few dozen roundings. The claim is about the runs
-    given ("on each of the N runs"), as every verdict is.
+    run-to-run noise for a t test: the result says so instead of printing a zero-width
+    interval (``se = mde = 0``, ``ci = (estimate, estimate)``). Runs ``i`` and ``j`` count as
+    giving the same difference when :math:`|d_i - d_j| \le r\,(s_i + s_j)`, with
+    :math:`s_i = \max(|a_i|, |b_i|)` (``log_ratio``: :math:`\max(|\log a_i|, |\log b_i|, 1)`)
+    and the round-off level :math:`r` = ``rtol``, by default :math:`64\,\varepsilon`; a run's
+    difference counts as 0 when :math:`|d_i| \le r\,s_i`. Zero spread can also happen by
+    chance (0/1 or other discrete values), so the p-value is that of an exact test: paired, the
+    sign test, :math:`p = 2^{1-n}` for :math:`n` non-zero differences of one sign (0.25 at
+    :math:`n = 3`; ``level=0.95`` needs :math:`n \ge 6`); unpaired, the permutation test of
+    the difference of means (Fisher's exact test for two values),
+    :math:`p = 1/\binom{N}{n_a}`, twice that when :math:`n_a = n_b` (0.1 for 3 + 3). The
+    verdict follows that p (``"not resolved"`` when it is too large), and :func:`holm` uses it;
+    TOST uses the one-sided versions (:math:`2^{-n}`, :math:`1/\binom{N}{n_a}`) when the
+    difference lies inside the region. Only when the difference is 0 in every run is the
+    verdict ``"equal"``: no difference in any of these runs, not a population equality (for
+    that, give a margin: the sign-test TOST then says whether the runs suffice).
+
+    .. warning:: The default round-off level :math:`64\,\varepsilon` suits values computed
+       through a few dozen roundings. Recursive computations accumulate more: the per-run
+       outputs of a Kalman filter with the Joseph and with the short covariance update
+       (identical in exact arithmetic) differ by about 1.4e-10 relative after 500 steps, and
+       the t test reads that round-off as a result ("lower", p = 0.03). State the round-off
+       level of such quantities with ``rtol`` (e.g. ``rtol=1e-9``): differences within it
+       count as no difference.
 
     Parameters
     ----------
@@ -278,6 +316,8 @@ def compare_runs(a, b, *, paired: bool = True, scale: str = "difference", level:
     margin : equivalence margin ``m > 0`` (a difference in the unit of the values; for a
         ratio, a relative margin with ``0 < m < 1``: 0.05 means the ratio in (0.95, 1.05)),
         or ``None`` for no equivalence test.
+    rtol : the relative round-off level of the values, in [0, 1) (``None``: ``64 eps``, a few
+        dozen roundings); differences within it count as no difference (see the warning above).
 
     Returns
     -------
@@ -299,7 +339,14 @@ def compare_runs(a, b, *, paired: bool = True, scale: str = "difference", level:
     Identical runs give an exact verdict, not a zero-width interval:
 
     >>> print(compare_runs(b, b.copy(), scale="log_ratio").sentence("A", "B", "RMSE"))
-    A's RMSE equals B's (on each of the 8 paired runs, to round-off: no interval to compute): equal
+    A's RMSE equals B's in each of the 8 paired runs (to round-off; these runs only, no interval to compute): equal
+
+    The same difference in every run may be chance with few runs (0/1 data); the p-value is
+    then the exact sign test's:
+
+    >>> print(compare_runs(np.ones(3), np.zeros(3)).sentence("A", "B", "share lost"))  # doctest: +NORMALIZE_WHITESPACE
+    A's share lost minus B's is 1 (the same difference in each of the 3 paired runs, to round-off;
+    exact sign test p = 0.25): not resolved by 3 runs (the sign test needs 6 runs of one sign for p < 0.05)
 
     Four runs cannot resolve a 1 % difference buried in 10 % noise; the sentence says what
     they could have detected:
@@ -327,21 +374,29 @@ def compare_runs(a, b, *, paired: bool = True, scale: str = "difference", level:
             raise ValueError(f"level must be > 0.5 for the equivalence test (TOST uses 1 - 2*(1 - level)), "
                              f"got {level!r}")
         margin = m
+    rtol_used = _ROUNDOFF if rtol is None else _rtol(rtol)
     x, y = (np.log(a), np.log(b)) if log else (a, b)
-    tol = _ROUNDOFF * max(float(np.abs(x).max()), float(np.abs(y).max()), 1.0 if log else 0.0)
+    # per-value round-off scale on the analysis scale (a relative error r of a value is an
+    # absolute error r of its logarithm, hence at least 1 for logarithms)
+    ux, uy = (np.maximum(np.abs(x), 1.0), np.maximum(np.abs(y), 1.0)) if log else (np.abs(x), np.abs(y))
     if paired:
-        d = x - y
+        d, t = x - y, rtol_used * np.maximum(ux, uy)  # |d_i - d_j| <= t_i + t_j for every pair:
+        exact = _common_point(d, t)                  # the intervals d_i ± t_i share a point
+        nonzero = int(np.count_nonzero(np.abs(d) > t))  # runs whose difference is not round-off of 0
+        zero = exact and nonzero == 0
         n = d.size
-        exact = bool(np.ptp(d) <= tol)
         delta, se, df = float(d.mean()), float(d.std(ddof=1) / math.sqrt(n)), float(n - 1)
     else:
-        exact = bool(np.ptp(x) <= tol and np.ptp(y) <= tol)
+        tx, ty = rtol_used * ux, rtol_used * uy
+        exact = _common_point(x, tx) and _common_point(y, ty)
+        zero = exact and _common_point(np.concatenate([x, y]), np.concatenate([tx, ty]))
         va, vb = float(x.var(ddof=1)) / x.size, float(y.var(ddof=1)) / y.size
         delta, se = float(x.mean() - y.mean()), math.sqrt(va + vb)
         df = (va + vb) ** 2 / (va**2 / (x.size - 1) + vb**2 / (y.size - 1)) if se > 0 else float(x.size + y.size - 2)
+    tol = rtol_used * max(float(ux.max()), float(uy.max()))
     if exact:  # no spread beyond round-off: the difference on these runs is known exactly
         se = 0.0
-        if abs(delta) <= tol:
+        if zero:
             delta = 0.0
     alpha = 1.0 - level
     tc, tp = stats.t.ppf([1.0 - alpha / 2, _POWER], df).tolist()
@@ -356,14 +411,22 @@ def compare_runs(a, b, *, paired: bool = True, scale: str = "difference", level:
         p = 2.0 * sf[0]
         if margin is not None:
             p_eq = max(sf[1], sf[2])
-    else:  # every run gives the same difference: no noise left
-        p = 1.0 if delta == 0 else 0.0
+    else:  # no spread: exact tests (the sign test paired, the permutation test unpaired)
+        inside = margin is not None and bl < delta < bh
+        if paired:  # each run's sign is a fair coin under H0: 2 of the 2^n sign patterns are this extreme
+            p = 1.0 if zero else min(1.0, math.ldexp(1.0, 1 - nonzero))
+            p_one = math.ldexp(1.0, -n)  # one-sided, every run inside the bound
+        else:  # one labelling in C(N, n_a) is this extreme, two (mirror) when n_a == n_b
+            labellings = math.comb(a.size + b.size, a.size)
+            p = 1.0 if zero else min(1.0, (2 if a.size == b.size else 1) / labellings)
+            p_one = 1.0 / labellings
         if margin is not None:
-            p_eq = 0.0 if bl < delta < bh else 1.0
+            p_eq = p_one if inside else 1.0
     ci = (math.exp(lo), math.exp(hi)) if log else (lo, hi)
     est = math.exp(delta) if log else delta
     return _decide(ComparisonResult(est, ci, se, p, mde, "", delta, df, level, int(a.size), int(b.size), bool(paired),
-                                    scale, margin, None, p_eq, 1, p, p_eq, exact, tol))
+                                    scale, margin, None, p_eq, 1, p, p_eq, exact, tol,
+                                    None if rtol is None else rtol_used))
 
 
 class HolmResult(NamedTuple):
@@ -503,9 +566,8 @@ def _decide(r: ComparisonResult) -> ComparisonResult:
     """Verdict of ``r`` from its (possibly Holm-adjusted) p-values."""
     alpha = 1.0 - r.level
     equivalent = None if r.margin is None else bool(r.p_equivalence_adjusted < alpha)
-    if r.exact:  # known exactly, not tested: Holm's adjustment cannot change the verdict
-        equivalent = None if r.margin is None else bool(r.p_equivalence == 0.0)
-        verdict = "equal" if r.delta == 0 else ("lower" if r.delta < 0 else "higher")
+    if r.exact and r.delta == 0:  # no difference in any run: a statement about these runs
+        verdict = "equal"
     elif r.p_adjusted < alpha:
         verdict = "lower" if r.delta < 0 else "higher"
     elif equivalent:
@@ -513,6 +575,19 @@ def _decide(r: ComparisonResult) -> ComparisonResult:
     else:
         verdict = f"not resolved by {r.n_a if r.paired else f'{r.n_a} + {r.n_b}'} runs"
     return dataclasses.replace(r, verdict=verdict, equivalent=equivalent)
+
+
+def _common_point(v: np.ndarray, t: np.ndarray) -> bool:
+    """Whether every pair satisfies ``|v_i - v_j| <= t_i + t_j``: the intervals ``v_i ± t_i``
+    intersect pairwise, which on a line means they share a point (O(n), not O(n^2))."""
+    return bool(np.max(v - t) <= np.min(v + t))
+
+
+def _rtol(value) -> float:
+    v = _scalar(value, "rtol")
+    if not 0.0 <= v < 1.0:
+        raise ValueError(f"rtol must be a relative round-off level in [0, 1), e.g. 1e-9, got {value!r}")
+    return v
 
 
 def _holm_adjust(p: np.ndarray) -> np.ndarray:
