@@ -29,3 +29,38 @@ def known_turn(T, w, sin, cos):
     q11, q12, q14 = 2 * (w * T - s) / w**3, (1 - c) / w**2, (w * T - s) / w**2
     Q = [[q11, q12, 0, q14], [q12, T, -q14, 0], [0, -q14, q11, q12], [q14, 0, q12, T]]
     return F, Q
+
+
+# --- tolerances derived from error bounds ---------------------------------------------------------
+
+EPS = 2.0**-52  # float64 machine epsilon (unit round-off u = EPS / 2)
+
+
+def roundoff_tol(A, n, cond=1.0, c=10.0):
+    """Normwise round-off bound ``c * n * cond * eps * max|A|`` for two computations of one quantity.
+
+    Derivation (Higham 2002, ch. 3 and 7): a length-n inner product, or a sum of n terms, computed
+    in floating point has absolute error <= gamma_n sum|terms| ~ n u max|A| (u = eps / 2) for
+    products of matrices of norm ~ |A|; a solve with a matrix of condition number ``cond`` (in the
+    2-norm) amplifies the relative backward error to a forward error <= cond * n * eps to first
+    order. Two codes each within the bound differ by at most twice it; ``c`` (10 unless the caller
+    derives another) covers that factor 2 and the few such operations chained in one filter step.
+    The bound is normwise (scaled by the largest entry), not entrywise: a small entry that arises
+    by cancellation carries the absolute error of the large ones.
+    """
+    import numpy as np
+
+    return c * n * cond * EPS * float(np.max(np.abs(A)))
+
+
+def scaled_cond(S):
+    """Condition number of ``D^{-1/2} S D^{-1/2}``, ``D = diag(S)``, for a symmetric positive definite S.
+
+    A Cholesky factorization and solve is invariant to diagonal scaling (van der Sluis 1969;
+    Demmel 1989; Higham 2002, Thm 10.7): its forward error is bounded by this condition number,
+    not by cond(S), which mixed units (metres and radians) inflate without any loss of accuracy.
+    """
+    import numpy as np
+
+    d = np.sqrt(np.diagonal(S, axis1=-2, axis2=-1))
+    return np.linalg.cond(S / (d[..., :, None] * d[..., None, :]))

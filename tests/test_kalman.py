@@ -11,10 +11,47 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
+from closed_forms import roundoff_tol
 from kftrack import kalman
 from kftrack.metrics import chi2_bounds
 
 EPS = np.finfo(float).eps
+
+
+def _predict_tols(x, P, F, Q):
+    """Round-off bounds (absolute, normwise) for two codes computing ``F x`` and ``F P F^T + Q``:
+    length-n inner products, |error| <= n eps |F||x| and (n + 1) eps (|F||P||F|^T + |Q|) each."""
+    n = len(x)
+    aF = np.abs(F)
+    return {"x": roundoff_tol(aF @ np.abs(x), n), "P": roundoff_tol(aF @ np.abs(P) @ aF.T + np.abs(Q), n + 1)}
+
+
+def _update_tols(x, P, z, H, R, u):
+    """Round-off bounds (absolute, normwise) for two codes computing one Kalman update ``u``.
+
+    Products are of length <= n + m (roundoff_tol's ``n``). The gain K = P H^T S^{-1} is a solve
+    with S: relative error <= cond(S) (n + m) eps, and so are x = x- + K y (scale |x| + |K||y|) and
+    the NIS y^T S^{-1} y (scale |y|^2 / lambda_min(S) >= nis). The Joseph form
+    (I - KH) P (I - KH)^T + K R K^T is stationary in K at the optimal gain, so the gain's error
+    enters P only at second order: P carries the products' round-off, scale
+    |I - KH||P||I - KH|^T + |K||R||K|^T. log det S from a Cholesky factor with backward error
+    m eps |S| moves by tr(S^{-1} dS) <= m cond(S) m eps, added to the NIS's in the log-likelihood.
+    """
+    n, m = len(x), len(z)
+    S, K = u.S, u.K
+    cS = np.linalg.cond(S)
+    aK, aH = np.abs(K), np.abs(H)
+    A = np.abs(np.eye(n) - K @ H)
+    nis_scale = np.sum(u.y**2) / np.linalg.eigvalsh(S)[0]
+    return {
+        "y": roundoff_tol(np.abs(z) + aH @ np.abs(x), n + 1),
+        "S": roundoff_tol(aH @ np.abs(P) @ aH.T + np.abs(R), n + 1),
+        "K": roundoff_tol(K, n + m, cS),
+        "x": roundoff_tol(np.abs(x).max() + aK @ np.abs(u.y), n + m, cS),
+        "P": roundoff_tol(A @ np.abs(P) @ A.T + aK @ np.abs(R) @ aK.T, n + m),
+        "nis": roundoff_tol(nis_scale, m, cS),
+        "loglik": roundoff_tol(nis_scale + m, m, cS),
+    }
 
 
 def random_spd(rng, n, scale=1.0):
@@ -60,18 +97,16 @@ def test_predict_and_update_match_filterpy():
     kf.x, kf.P, kf.F, kf.Q, kf.H, kf.R = x.copy(), P.copy(), F, Q, H, R
     kf.predict()
     xp, Pp = kalman.predict(x, P, F, Q)
-    np.testing.assert_allclose(xp, kf.x, rtol=1e-12)
-    np.testing.assert_allclose(Pp, kf.P, rtol=1e-12)
+    tol = _predict_tols(x, P, F, Q)  # derivations in _predict_tols / _update_tols
+    np.testing.assert_allclose(xp, kf.x, rtol=0, atol=tol["x"])
+    np.testing.assert_allclose(Pp, kf.P, rtol=0, atol=tol["P"])
     z = rng.normal(size=2)
     kf.update(z)
     u = kalman.update(xp, Pp, z, H, R)
-    np.testing.assert_allclose(u.x, kf.x, rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(u.P, kf.P, rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(u.y, kf.y, rtol=1e-12)
-    np.testing.assert_allclose(u.S, kf.S, rtol=1e-12)
-    np.testing.assert_allclose(u.K, kf.K, rtol=1e-10)
-    np.testing.assert_allclose(u.loglik, kf.log_likelihood, rtol=1e-10)
-    np.testing.assert_allclose(u.nis, kf.mahalanobis**2, rtol=1e-10)
+    tol = _update_tols(xp, Pp, z, H, R, u)
+    fp = {"x": kf.x, "P": kf.P, "y": kf.y, "S": kf.S, "K": kf.K, "loglik": kf.log_likelihood, "nis": kf.mahalanobis**2}
+    for name, want in fp.items():
+        np.testing.assert_allclose(getattr(u, name), want, rtol=0, atol=tol[name], err_msg=name)
 
 
 def test_update_equals_information_form_and_loglik_equals_scipy():
@@ -80,13 +115,19 @@ def test_update_equals_information_form_and_loglik_equals_scipy():
     x, P, z = rng.normal(size=5), random_spd(rng, 5), rng.normal(size=3)
     u = kalman.update(x, P, z, H, R)
     # information form: P+^{-1} = P^{-1} + H^T R^{-1} H; x+ = P+ (P^{-1} x + H^T R^{-1} z)
-    P_info = np.linalg.inv(np.linalg.inv(P) + H.T @ np.linalg.solve(R, H))
+    Y = np.linalg.inv(P) + H.T @ np.linalg.solve(R, H)
+    P_info = np.linalg.inv(Y)
     x_info = P_info @ (np.linalg.solve(P, x) + H.T @ np.linalg.solve(R, z))
-    np.testing.assert_allclose(u.P, P_info, rtol=1e-9)
-    np.testing.assert_allclose(u.x, x_info, rtol=1e-9)
+    # the information form inverts P and R (relative errors cond(P), cond(R) times n eps) and then
+    # Y = P+^{-1}, which amplifies Y's relative error by cond(Y); the Kalman form solves with S
+    c_info = np.linalg.cond(Y) * (np.linalg.cond(P) + np.linalg.cond(R)) + np.linalg.cond(u.S)
+    np.testing.assert_allclose(u.P, P_info, rtol=0, atol=roundoff_tol(P_info, 5 + 3, c_info))
+    x_scale = np.abs(P_info) @ (np.abs(np.linalg.solve(P, x)) + np.abs(H.T) @ np.abs(np.linalg.solve(R, z)))
+    np.testing.assert_allclose(u.x, x_info, rtol=0, atol=roundoff_tol(x_scale, 5 + 3, c_info))
     S = H @ P @ H.T + R
-    assert u.loglik == pytest.approx(stats.multivariate_normal(H @ x, S).logpdf(z), rel=1e-12)
-    assert u.nis == pytest.approx((z - H @ x) @ np.linalg.solve(S, z - H @ x), rel=1e-12)
+    tol = _update_tols(x, P, z, H, R, u)  # scipy: eigh of S, the same first-order bound in cond(S)
+    assert u.loglik == pytest.approx(stats.multivariate_normal(H @ x, S).logpdf(z), rel=0, abs=tol["loglik"])
+    assert u.nis == pytest.approx((z - H @ x) @ np.linalg.solve(S, z - H @ x), rel=0, abs=tol["nis"])
 
 
 def test_batch_equals_loop_with_shared_and_per_batch_matrices():
@@ -100,10 +141,16 @@ def test_batch_equals_loop_with_shared_and_per_batch_matrices():
     xp, Pp = kalman.predict(x, P, F, Q)
     u = kalman.update(xp, Pp, z, H, Rb)
     for b in range(B):
+        # batched and single matmuls may take different BLAS paths: each step is compared on the
+        # same inputs, within the round-off bounds of _predict_tols / _update_tols
         xb, Pb = kalman.predict(x[b], P[b], F, Q)
-        ub = kalman.update(xb, Pb, z[b], H, Rb[b])
+        tp = _predict_tols(x[b], P[b], F, Q)
+        np.testing.assert_allclose(xp[b], xb, rtol=0, atol=tp["x"])
+        np.testing.assert_allclose(Pp[b], Pb, rtol=0, atol=tp["P"])
+        ub = kalman.update(xp[b], Pp[b], z[b], H, Rb[b])
+        tol = _update_tols(xp[b], Pp[b], z[b], H, Rb[b], ub)
         for field in kalman.Update._fields:
-            np.testing.assert_allclose(getattr(u, field)[b], getattr(ub, field), rtol=1e-12, atol=1e-14)
+            np.testing.assert_allclose(getattr(u, field)[b], getattr(ub, field), rtol=0, atol=tol[field], err_msg=field)
     # two batch axes broadcast against each other
     x2 = np.broadcast_to(x[:, None, :], (B, 3, 4))
     u2 = kalman.update(x2, Pp[:, None], z[None, :3, :].repeat(B, 0), H, R)
@@ -118,9 +165,14 @@ def test_joseph_update_is_symmetric_psd_and_not_larger_than_prior(seed, n, m, sc
     P = random_spd(rng, n, scale)
     H = rng.normal(size=(m, n))
     R = random_spd(rng, m, scale)
-    u = kalman.update(rng.normal(size=n), P, rng.normal(size=m), H, R)
+    x, z = rng.normal(size=n), rng.normal(size=m)
+    u = kalman.update(x, P, z, H, R)
     np.testing.assert_array_equal(u.P, u.P.T)
-    tol = 1e3 * n * EPS * np.abs(P).max()
+    # The Joseph form with the computed gain K is PSD in exact arithmetic for any K; evaluating it
+    # errs by <= _update_tols' "P" entrywise (normwise max), so by Weyl its eigenvalues move by
+    # <= |E|_2 <= n max|E|; eigvalsh's backward error adds n eps |P|. P - P+ = K S K^T >= 0
+    # exactly, the subtraction adds eps |P|.
+    tol = n * _update_tols(x, P, z, H, R, u)["P"] + roundoff_tol(P, n, c=2.0)
     assert np.linalg.eigvalsh(u.P).min() >= -tol
     assert np.linalg.eigvalsh(P - u.P).min() >= -tol  # a measurement never adds uncertainty
 
@@ -137,16 +189,16 @@ def test_kalman_filter_equals_step_by_step_and_nan_row_predicts_only():
     zs[5] = np.nan
     res = kalman.kalman_filter(zs, x0, P0, F, Q, H, R)
     x, P = x0, P0
-    for k in range(12):
-        np.testing.assert_allclose(res.x_prior[k], x, rtol=1e-12)
+    for k in range(12):  # one run: the same kernel calls on the same shapes, so the same bits
+        np.testing.assert_array_equal(res.x_prior[k], x)
         if k == 5:
             assert np.isnan(res.nis[k]) and np.isnan(res.loglik[k])
         else:
             u = kalman.update(x, P, zs[k], H, R)
             x, P = u.x, u.P
-            assert res.nis[k] == pytest.approx(u.nis, rel=1e-12)
-        np.testing.assert_allclose(res.x[k], x, rtol=1e-12)
-        np.testing.assert_allclose(res.P[k], P, rtol=1e-12)
+            assert res.nis[k] == u.nis
+        np.testing.assert_array_equal(res.x[k], x)
+        np.testing.assert_array_equal(res.P[k], P)
         x, P = kalman.predict(x, P, F, Q)
 
 
@@ -158,8 +210,13 @@ def test_kalman_filter_batch_with_missing_in_some_runs_only():
     res = kalman.kalman_filter(zs, np.zeros(4), np.eye(4), F, Q, H, R)
     for r in range(3):
         single = kalman.kalman_filter(zs[:, r], np.zeros(4), np.eye(4), F, Q, H, R)
-        np.testing.assert_allclose(res.x[:, r], single.x, rtol=1e-12)
-        np.testing.assert_allclose(res.P[:, r], single.P, rtol=1e-12)
+        # batched and single matmuls may take different BLAS paths: each step adds at most the
+        # round-off of one predict + update (n + m = 6 terms, cond(S) <= max over steps), and the
+        # filter contracts earlier errors (|I - KH| F stable), so after T steps at most T times that
+        T, cS = zs.shape[0], max(np.linalg.cond(H @ p @ H.T + R) for p in single.P_prior)
+        np.testing.assert_allclose(res.x[:, r], single.x, rtol=0,
+                                   atol=T * roundoff_tol(np.abs(single.x).max() + np.nanmax(np.abs(zs[:, r])), 6, cS))
+        np.testing.assert_allclose(res.P[:, r], single.P, rtol=0, atol=T * roundoff_tol(single.P_prior, 6))
     assert np.isnan(res.nis[4, 1]) and not np.isnan(res.nis[4, 0])
 
 
@@ -206,11 +263,25 @@ def test_rts_smoother_matches_filterpy_and_reduces_covariance():
     res = kalman.kalman_filter(zs[:, 0], x0, P0, F, Q, H, R)
     sm = kalman.rts_smoother(res, F)
     xs_fp, Ps_fp, _, _ = fp_rts(res.x, res.P, [F] * 30, [Q] * 30)
-    np.testing.assert_allclose(sm.x, xs_fp, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(sm.P, Ps_fp, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(sm.x[-1], res.x[-1])
-    for k in range(29):
-        assert np.linalg.eigvalsh(res.P[k] - sm.P[k]).min() >= -1e-10
+    # Each backward step solves with P-_{k+1} (relative error <= n cond eps, n = 4) and carries the
+    # later steps' errors through the gain G_k = P_k F^T (P-_{k+1})^{-1}: dx_k = local_k + G_k dx_{k+1},
+    # so |dx_k| <= sum_{j >= k} |G_k ... G_{j-1}|_2 local_j (dP_k: the squares of those norms)
+    cP = max(np.linalg.cond(p) for p in res.P_prior[1:])
+    G = [np.linalg.solve(res.P_prior[k + 1], F @ res.P[k]).T for k in range(29)]
+    amp_x = amp_P = 0.0
+    for k in range(30):
+        M, gx, gP = np.eye(4), 0.0, 0.0
+        for j in range(k, 30):
+            g = np.linalg.norm(M, 2)
+            gx, gP = gx + g, gP + g * g
+            M = M @ G[j] if j < 29 else M
+        amp_x, amp_P = max(amp_x, gx), max(amp_P, gP)
+    x_scale = np.abs(sm.x).max() + np.abs(res.x).max()
+    np.testing.assert_allclose(sm.x, xs_fp, rtol=0, atol=amp_x * roundoff_tol(x_scale, 4, cP))
+    np.testing.assert_allclose(sm.P, Ps_fp, rtol=0, atol=amp_P * roundoff_tol(res.P_prior, 4, cP))
+    np.testing.assert_array_equal(sm.x[-1], res.x[-1])  # the last smoothed state is the filtered one
+    for k in range(29):  # P - P^s = G (P- - P^s_{k+1}) G^T >= 0 exactly; Weyl: eigenvalues move by <= n max|dP|
+        assert np.linalg.eigvalsh(res.P[k] - sm.P[k]).min() >= -4 * amp_P * roundoff_tol(res.P_prior, 4, cP)
 
 
 # --- statistics --------------------------------------------------------------------------
