@@ -28,12 +28,16 @@ Numerics: pure functions and small immutable results.
 - :mod:`kftrack.adaptive` -- NIS-based manoeuvre detection and process-noise adaptation.
 - :mod:`kftrack.tuning` -- noise parameters by maximum likelihood (innovation log-likelihood and its gradient).
 - :mod:`kftrack.association` -- gates, nearest neighbour, PDAF, IMM-PDAF, GNN, JPDA and the GOSPA/OSPA metrics.
+- :mod:`kftrack.phd` -- the Gaussian-mixture PHD filter: birth, pruning, merging, state extraction.
+- :mod:`kftrack.trackeval` -- GOSPA over time and track-level metrics: breaks, switches, false and missed tracks.
 - :mod:`kftrack.trackmanagement` -- track initiation, M-of-N confirmation, track score and lost tracks.
+- :mod:`kftrack.multitarget` -- many targets in clutter: GNN or cluster JPDA with track initiation, confirmation and deletion.
 - :mod:`kftrack.scanmatch` -- planar rigid transforms and ICP scan matching.
 - :mod:`kftrack.montecarlo` -- Monte Carlo comparison of several filters on one scenario.
 - :mod:`kftrack.compare` -- a paired comparison of two methods with its interval and verdict.
 - :mod:`kftrack.kernels` -- the unchecked predict/update/mixing kernels (array API), one home for the equations.
 - :mod:`kftrack.engines` -- the two time-loop drivers: a Python loop for NumPy, ``jax.lax.scan`` for JAX.
+- :mod:`kftrack.parallel` -- the linear Kalman filter and RTS smoother parallel in time (prefix scans, JAX).
 - ``kftrack.results`` -- the result types of the whole-sequence filters and smoothers.
 
 Models: what moves and what is measured.
@@ -46,6 +50,7 @@ Models: what moves and what is measured.
 - :mod:`kftrack.sensors.lidar` -- a floor plan of walls and a simulated 2-D LIDAR (ray casting).
 - :mod:`kftrack.sensors.gps` -- NMEA 0183 sentences and logs, and the geodesy from fixes to metres.
 - :mod:`kftrack.sensors.ardrone` -- the Parrot AR.Drone's sensors: units, altimeter format, statistics, logs.
+- :mod:`kftrack.sensors.surveillance` -- a simulated rotating surveillance radar over recorded traffic: scans of plots.
 - :mod:`kftrack.clutter` -- what a sensor reports each scan: detections with probability ``P_D`` and Poisson clutter.
 - :mod:`kftrack.attitude` -- drone pitch, roll and height from an IMU and an altimeter.
 - :mod:`kftrack.gpsfusion` -- fusing GPS receivers: the speed-heading model, stacked and weighted fusion.
@@ -75,8 +80,8 @@ __version__ = "0.2.0"  # the single source: pyproject.toml reads it (tool.setupt
 #: Every public module, imported on first attribute access.
 _MODULES = (
     "kalman", "ekf", "ukf", "imm", "particle", "resampling", "steady", "discretize", "gaussians", "metrics",
-    "adaptive", "tuning", "association", "trackmanagement", "scanmatch", "montecarlo", "compare", "kernels",
-    "engines", "results",
+    "adaptive", "tuning", "association", "phd", "trackeval", "trackmanagement", "multitarget", "scanmatch", "montecarlo", "compare", "kernels",
+    "engines", "parallel", "results",
     "models", "symbolic", "frenet", "sensors", "clutter", "attitude", "gpsfusion", "slam",
     "scenarios", "datasets", "gpstrack", "adsb", "aircraft", "flighttuning", "flightscore",
     "plotting", "tables",
