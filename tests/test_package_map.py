@@ -175,7 +175,7 @@ def test_which_modules_import_sympy_jax_matplotlib():
     claim = re.search(r"SymPy comes with (.*?); matplotlib", kftrack.__doc__, re.S).group(1)
     claimed = {"kftrack." + m for m in re.findall(r":mod:`~kftrack\.([\w.]+)`", claim)}
     assert claimed == {"kftrack.symbolic", "kftrack.models", "kftrack.frenet", "kftrack.slam",
-                       "kftrack.sensors.radar", "kftrack.scenarios"}
+                       "kftrack.sensors.radar", "kftrack.scenarios", "kftrack.multitarget"}
     assert set(out["sympy"]) == claimed
     assert out["jax"] == [] and out["matplotlib"] == []
 

@@ -4,7 +4,7 @@ Every module is reachable from the package, ``import kftrack; kftrack.kalman.kal
 and is imported on first use (PEP 562): ``import kftrack`` itself imports none of them, so none of
 JAX, SymPy or matplotlib. SymPy comes with :mod:`~kftrack.symbolic`, :mod:`~kftrack.models`,
 :mod:`~kftrack.frenet`, :mod:`~kftrack.slam`, :mod:`~kftrack.sensors.radar` and the modules that
-import them (:mod:`~kftrack.scenarios`); matplotlib only inside the functions of
+import them (:mod:`~kftrack.scenarios`, :mod:`~kftrack.multitarget`); matplotlib only inside the functions of
 :mod:`~kftrack.plotting`; JAX only when a filter is given JAX arrays. JAX is optional (the
 ``[jax]`` extra, ``pip install ".[jax]"``): without it every function runs on NumPy arrays.
 
@@ -31,7 +31,6 @@ Numerics: pure functions and small immutable results.
 - :mod:`kftrack.phd` -- the Gaussian-mixture PHD filter: birth, pruning, merging, state extraction.
 - :mod:`kftrack.trackeval` -- GOSPA over time and track-level metrics: breaks, switches, false and missed tracks.
 - :mod:`kftrack.trackmanagement` -- track initiation, M-of-N confirmation, track score and lost tracks.
-- :mod:`kftrack.multitarget` -- many targets in clutter: GNN or cluster JPDA with track initiation, confirmation and deletion.
 - :mod:`kftrack.scanmatch` -- planar rigid transforms and ICP scan matching.
 - :mod:`kftrack.montecarlo` -- Monte Carlo comparison of several filters on one scenario.
 - :mod:`kftrack.compare` -- a paired comparison of two methods with its interval and verdict.
@@ -55,6 +54,7 @@ Models: what moves and what is measured.
 - :mod:`kftrack.attitude` -- drone pitch, roll and height from an IMU and an altimeter.
 - :mod:`kftrack.gpsfusion` -- fusing GPS receivers: the speed-heading model, stacked and weighted fusion.
 - :mod:`kftrack.slam` -- robot localization and EKF-SLAM in the plane.
+- :mod:`kftrack.multitarget` -- many targets in clutter: GNN, cluster JPDA or GM-PHD on a radar's scans, with track initiation, confirmation and deletion.
 
 Worlds: seeded scenarios and recorded data.
 
