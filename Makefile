@@ -8,14 +8,15 @@ STAMP  := $(VENV)/.installed
 RUN    := PYTHONHASHSEED=0 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 NBVAL  := --nbval --nbval-current-env --nbval-sanitize-with tests/nbval_sanitize.cfg
 
-.PHONY: help venv book test unit nbval booktest lab execute clean portability benchmark
+.PHONY: help venv book test unit nbval booktest lab execute clean portability benchmark lite-check
 
 help:
-	@echo "make book     build the site into _build/html from the executed notebooks"
+	@echo "make book     build the site into _build/html from the executed notebooks (+ _build/html/lite: run in the browser)"
 	@echo "make test     unit tests, nbval over notebooks/, then the book build (-W)"
 	@echo "make lab      JupyterLab on notebooks/"
 	@echo "make execute  re-execute every notebook in place (NB=notebooks/02-*.ipynb for one)"
 	@echo "make portability  unit tests + nbval under several OpenBLAS/NumPy SIMD kernels (UNIT_ONLY=1)"
+	@echo "make lite-check  every chapter run in JupyterLite in headless Chromium, time per chapter (~1 min each)"
 	@echo "make clean    remove _build/ and caches (keeps .venv)"
 	@echo "make benchmark  kftrack vs peers (installs benchmarks/requirements.txt; ~5 min; writes book/performance_results.md)"
 
@@ -59,10 +60,17 @@ execute: $(STAMP)
 	$(RUN) $(BIN)/jupyter nbconvert --to notebook --execute --inplace \
 	  --ExecutePreprocessor.timeout=300 --ExecutePreprocessor.kernel_name=python3 $(NB)
 
+# Developer check, not part of `make test` (which runs chapter 01 in JupyterLite):
+# every chapter with a Lite copy run through the JupyterLite notebook interface in Debian's
+# Chromium, offline, with the time of each. Builds the site first (book/_ext/lite.py makes lite/).
+lite-check: book
+	KFTRACK_SITE_BUILT=1 KFTRACK_LITE_CHAPTERS=all $(RUN) $(BIN)/python -m pytest -q -s tests/book/test_lite.py -k chapter_runs
+
 # Performance appendix (not part of `make test`): the rivals are pinned in benchmarks/requirements.txt.
 benchmark: $(STAMP)
 	$(BIN)/python -m pip install -q -r benchmarks/requirements.txt
 	$(RUN) $(BIN)/python benchmarks/filters.py
+	$(RUN) $(BIN)/python benchmarks/compose.py
 
 clean:
 	rm -rf _build .pytest_cache .hypothesis

@@ -179,7 +179,7 @@ class SurveillanceRadar:
         scan, index, t, xy = scan[seen], index[seen], t[seen], xy[seen]
         z = np.column_stack([np.hypot(xy[:, 0], xy[:, 1]), np.arctan2(xy[:, 1], xy[:, 0])])
         z = z + rng.standard_normal(z.shape) * np.asarray(self.sigmas)
-        n_c = rng.poisson(self.clutter_rate, size=t_scan.size)
+        n_c = rng.poisson(self.clutter_rate, size=t_scan.size).astype(np.intp)  # int32 on WebAssembly: np.repeat needs intp
         scan_c = np.repeat(np.arange(t_scan.size), n_c)
         r_c = np.sqrt(rng.uniform(self.min_range**2, self.max_range**2, scan_c.size))
         az_c = rng.uniform(0.0, 2 * np.pi, scan_c.size)      # compass azimuth
