@@ -123,3 +123,74 @@ def test_stored_structure_and_summaries(bench, stored):
         assert v["max_state_difference"] == 0.0, m
     # the committed table is the one the stored figures give
     assert bench.markdown(stored) == (ROOT / "benchmarks" / "multitarget.md").read_text()
+
+
+# ---------------------------------------------------------------- command line and the pre-gate's audit
+def test_arguments_are_parsed_before_anything_runs(bench, stored, capsys):
+    # --help and an unknown argument stop in argparse (SystemExit) before any computation or file write
+    with pytest.raises(SystemExit) as e:
+        bench.main(["--help"])
+    assert e.value.code == 0 and "--gnn-runs" in capsys.readouterr().out
+    for bad in (["--bogus"], ["--runs", "1"], ["--gnn-runs", "x"]):
+        with pytest.raises(SystemExit) as e:
+            bench.main(bad)
+        assert e.value.code == 2, bad
+    # the stored provenance is the command that reproduces the committed file (from the parsed arguments)
+    mode = stored["mode"]
+    args = bench.parse_args(["--runs", str(mode["runs"]), "--gnn-runs", str(mode["gnn_runs"]),
+                             "--phd-runs", str(mode["phd_runs"])])
+    assert stored["provenance"]["command"] == bench._command(args)
+    assert bench.parse_args([]).out == bench.OUT_JSON
+
+
+def test_pregate_audit_statistic_is_stonesoups_gate_distance(bench):
+    # The audit's d^2 of a dropped pair equals the squared Mahalanobis distance Stone Soup's
+    # DistanceHypothesiser compares with its gate (EKF prediction to the detection's time, closed-form
+    # Jacobian): the same closed forms, agreement to 1e-9 relative.
+    from stonesoup.measures import SquaredMahalanobis
+    from stonesoup.types.state import GaussianState
+
+    from kftrack.sensors.radar import RangeBearing
+
+    sensor = RangeBearing(sigmas=(50.0, np.deg2rad(0.1)), sensor=(1000.0, -2000.0))
+    cfg = dict(sensor=sensor, q=5.0, P_G=0.99, exact_jacobian=True)
+    _, meas, predictor, updater = bench._ss_components(cfg)
+    x = np.array([30e3, 150.0, 20e3, -60.0])
+    P = np.diag([400.0 ** 2, 20.0 ** 2, 300.0 ** 2, 15.0 ** 2])
+    P[0, 2] = P[2, 0] = 0.3 * 400.0 * 300.0
+    state = GaussianState(x.reshape(4, 1), P, timestamp=bench._stamp(100.0))
+    scan = __import__("kftrack.sensors.surveillance", fromlist=["Scan"]).Scan(
+        101.0, np.array([101.3, 102.1]), np.array([[37e3, 0.61], [36.1e3, 0.66]]), np.array([-1, -1]))
+    dets = bench.stonesoup_detections(scan, meas)
+    want = []
+    for d in dets:
+        mp = updater.predict_measurement(predictor.predict(state, timestamp=d.timestamp), measurement_model=meas)
+        want.append(float(SquaredMahalanobis()(mp, d)))
+    pg = bench._wrap(None, cfg, True)
+    for d, w in zip(dets, want):
+        bench.reset_pregate_audit()
+        meta = np.array([d.metadata["txyr"]])
+        pg.audit(x, P, meta, meta[:, 0] - 100.0)
+        assert bench.PREGATE_AUDIT["dropped"] == 1
+        assert bench.PREGATE_AUDIT["min_d2_over_gate"] * pg.gate == pytest.approx(w, rel=1e-9)
+        assert bench.PREGATE_AUDIT["dropped_inside_gate"] == int(w <= pg.gate)
+    assert min(want) < pg.gate < max(want)      # one pair inside the gate, one outside: both branches
+    bench.reset_pregate_audit()
+
+
+def test_stored_audit_exponent_bounds_and_aligned_phd(bench, stored):
+    # every pair the pre-gate dropped in the whole Monte Carlo lies outside the hypothesiser's gate
+    au = stored["pregate_audit"]
+    assert au["dropped"] > 0 and au["dropped_inside_gate"] == 0 and au["min_d2_over_gate"] > 1.0
+    assert au["runs"] == {"gnn": stored["mode"]["gnn_runs"], "jpda": stored["mode"]["runs"],
+                          "phd": stored["mode"]["phd_runs"]}
+    # the exponent's one-sided bound follows from the stored rows (the function the chapter's numbers come from)
+    again = bench.exponent_fit(stored["scaling"]["rows"])
+    for m in ("gnn", "jpda"):
+        assert again["exponent_upper_one_sided_95"][m] == pytest.approx(
+            stored["scaling"]["exponent_upper_one_sided_95"][m], rel=1e-9)
+        assert again["exponent_upper_one_sided_95"][m] > again["exponent"][m]
+    ap = stored["aligned_phd"]
+    for k in ("kftrack_gospa", "stonesoup_gospa", "max_abs_gospa_difference", "max_abs_cardinality_difference",
+              "max_state_position_difference_m"):
+        assert np.isfinite(ap[k]), k
