@@ -362,16 +362,18 @@ def figures(baseline, fl):
     return e, ef, ec, finite, float(np.nanmax(res.speed_mps))
 
 
-# Every chapter and unseen flight must meet the issue's figures (no divergence: finite predictions,
-# speeds below MAX_SPEED_MPS; recipe <= 0.85 x filterpy and <= CV). featured/belevingsvlucht, the
-# binding flight, reached 0.83 x filterpy with the spike hold (aircraft.py, module docstring
-# point 4); it was 0.88 before.
+# Every flight: no divergence (finite predictions, speeds below MAX_SPEED_MPS). The accuracy figures
+# (recipe <= 0.85 x filterpy and <= CV) are asserted on the training (chapter) flights only: a test that
+# passes or fails on the test flights' accuracy would let whoever changes the recipe see them (issue 26;
+# their scores are reported, not used, by benchmarks/aircraft_split.py). featured/belevingsvlucht, the
+# binding training flight, reached 0.83 x filterpy with the spike hold (aircraft.py, module docstring point 4).
 @pytest.mark.parametrize("name", CHAPTER_FLIGHTS + UNSEEN_FLIGHTS)
 def test_figures(baseline, flights, name):
     e, ef, ec, finite, vmax = figures(baseline, flights[name])
     assert finite and vmax < A.MAX_SPEED_MPS
-    assert e <= 0.85 * ef, f"recipe {e:.1f} m vs filterpy {ef:.1f} m"
-    assert e <= ec, f"recipe {e:.1f} m vs CV {ec:.1f} m"
+    if name in CHAPTER_FLIGHTS:
+        assert e <= 0.85 * ef, f"recipe {e:.1f} m vs filterpy {ef:.1f} m"
+        assert e <= ec, f"recipe {e:.1f} m vs CV {ec:.1f} m"
 
 
 # ---------------------------------------------------------------- the likelihood and its fit

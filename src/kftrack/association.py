@@ -36,8 +36,9 @@ from scipy.optimize import linear_sum_assignment
 from scipy.special import gammaln
 from scipy.stats import chi2
 
-from ._validate import as_float_array, as_vector, check_covariance, check_finite
-from .kalman import update as kalman_update
+from . import kernels as _k
+from ._validate import as_float_array, as_vector, broadcast_batch, check_covariance, check_finite
+from .kalman import _overflow
 
 __all__ = [
     "gate_threshold", "unit_ball_volume", "gate_volume", "check_scan", "Gate", "validation_gate",
@@ -121,7 +122,17 @@ def gate_threshold(P_G: float, m: int) -> float:
     P_G = _check_prob_gate(P_G)
     if int(m) != m or m < 1:
         raise ValueError(f"m (measurement dimension) must be a positive integer, got {m!r}")
-    return float(chi2.ppf(P_G, int(m)))
+    return _gate_constants(P_G, int(m))[0]
+
+
+@functools.lru_cache(maxsize=64)
+def _gate_constants(P_G: float, m: int) -> tuple[float, float]:
+    r"""``(gamma, c_m gamma^{m/2})`` for a checked ``P_G`` and ``m``: the threshold
+    :math:`\gamma = \chi^2_m{}^{-1}(P_G)` and the factor of the gate volume
+    :math:`V = c_m\gamma^{m/2}|S|^{1/2}`, computed once per ``(P_G, m)`` (``chi2.ppf`` costs
+    tens of microseconds, and the gate is applied at every scan)."""
+    gamma = float(chi2.ppf(P_G, m))
+    return gamma, unit_ball_volume(m) * gamma ** (0.5 * m)
 
 
 def unit_ball_volume(m: int) -> float:
@@ -146,9 +157,8 @@ def gate_volume(S, P_G: float) -> np.ndarray:
     """
     S = check_covariance(S, "S", positive_definite=True)
     m = S.shape[-1]
-    gamma = gate_threshold(P_G, m)
     _, logdet = np.linalg.slogdet(S)
-    return unit_ball_volume(m) * gamma ** (0.5 * m) * np.exp(0.5 * logdet)
+    return _gate_constants(_check_prob_gate(P_G), m)[1] * np.exp(0.5 * logdet)
 
 
 class Gate(NamedTuple):
@@ -175,32 +185,47 @@ class Gate(NamedTuple):
 
 
 def _gate(x, P, Z, mask, H, R, P_G):
-    """Kernel of :func:`validation_gate` (no checks); also returns the Kalman update ``u``
-    (``y = 0``) whose ``K``, ``S`` and ``P`` the PDAF reuses."""
+    """Kernel of :func:`validation_gate` (no argument checks: the public functions have made
+    them); also returns the covariance part ``u`` of the Kalman update
+    (:func:`kftrack.kernels.kf_gain`: ``S``, ``K``, Joseph ``P``, ``log det S``), which the PDAF
+    reuses. The same bits as the checked :func:`kftrack.kalman.update` (which calls the same
+    kernel); like it, a ``ValueError`` if the prediction, gain or covariance overflows."""
     zhat = (H @ x[..., None])[..., 0]
-    u = kalman_update(x, P, zhat, H, R)
+    u = _k.kf_gain(P, H, R)
+    if not (np.isfinite(zhat).all() and np.isfinite(u.K).all() and np.isfinite(u.P).all()):
+        raise ValueError(_overflow("the predicted measurement H x, the gain or the updated covariance",
+                                   x=x, P=P, H=H, R=R))
     S = u.S
     m = Z.shape[-1]
     nu = np.where(mask[..., None], Z - zhat[..., None, :], 0.0)
     Sinv_nu = np.linalg.solve(S[..., None, :, :], nu[..., None])[..., 0]
     d2 = np.where(mask, np.einsum("...i,...i->...", nu, Sinv_nu), np.inf)
-    gamma = float(chi2.ppf(P_G, m))
-    _, logdet = np.linalg.slogdet(S)
-    volume = unit_ball_volume(m) * gamma ** (0.5 * m) * np.exp(0.5 * logdet)
+    gamma, c_gamma = _gate_constants(P_G, m)
+    logdet = u.logdet
+    volume = c_gamma * np.exp(0.5 * logdet)
     logN = -0.5 * (d2 + (logdet + m * _LOG_2PI)[..., None])
     return Gate(zhat, S, nu, d2, mask & (d2 <= gamma), gamma, volume, logN), u
 
 
+def _check_measurement(H, R, n: int, origin: str):
+    """The measurement matrix ``H`` (m, n) or (..., m, n), finite, and ``R`` (m, m) or (..., m, m),
+    positive definite."""
+    H = as_float_array(H, "H")
+    if H.ndim < 2 or H.shape[-1] != n:
+        raise ValueError(f"H must have shape (m, {n}) ({origin}), got shape {H.shape}")
+    check_finite(H, "H")
+    m = H.shape[-2]
+    return H, check_covariance(R, "R", m, positive_definite=True, origin=f"m = {m} from H")
+
+
 def _check_filter_args(x, P, Z, mask, H, R):
+    """The checks of the public filters, made once: then :func:`_gate` and the kernels run unchecked."""
     x = as_vector(x, "x")
     n = x.shape[-1]
     P = check_covariance(P, "P", n, origin=f"n = {n} from x")
-    H = as_float_array(H, "H")
-    if H.ndim < 2 or H.shape[-1] != n:
-        raise ValueError(f"H must have shape (m, {n}) (n = {n} from x), got shape {H.shape}")
-    m = H.shape[-2]
-    R = check_covariance(R, "R", m, positive_definite=True, origin=f"m = {m} from H")
-    Z, mask = check_scan(Z, mask, m)
+    H, R = _check_measurement(H, R, n, f"n = {n} from x")
+    broadcast_batch({"x": x.shape[:-1], "P": P.shape[:-2], "H": H.shape[:-2], "R": R.shape[:-2]})
+    Z, mask = check_scan(Z, mask, H.shape[-2])
     return x, P, Z, mask, H, R
 
 
@@ -712,6 +737,15 @@ def jpda_update(xs, Ps, Z, H, R, *, P_D: float, P_G: float, clutter_density, mas
     if xs.ndim < 2:
         raise ValueError(f"xs must have shape (..., T, n), got shape {xs.shape}")
     x, P, Zc, mask, H, R = _check_filter_args(xs, Ps, Z, mask, H, R)
+    return _jpda_update(x, P, Zc, mask, H, R, P_D, P_G, lam, max_events)
+
+
+def _jpda_update(x, P, Zc, mask, H, R, P_D, P_G, lam, max_events) -> JPDAUpdate:
+    """Kernel of :func:`jpda_update` on checked arguments (no checks here): ``x`` (..., T, n),
+    ``P`` (..., T, n, n), ``Zc`` (..., M, m) finite (zero at padding), ``mask`` (..., M) bool,
+    ``H``, ``R`` checked, ``P_D``, ``P_G`` floats, ``lam`` > 0 (scalar or array over ``...``),
+    ``max_events`` a positive integer. Raises the ``max_events`` ``ValueError`` of
+    :func:`jpda_update` (callers may catch it and fall back on an approximation)."""
     T, M = x.shape[-2], Zc.shape[-2]
     g, u = _gate(x, P, Zc[..., None, :, :], mask[..., None, :], H, R, P_G)
     logL0, logL, _, _ = _log_pda_terms(g, P_D, P_G, np.asarray(lam)[..., None])
@@ -969,12 +1003,15 @@ def gnn_filter(scans, x0, P0, F, Q, H, R, *, P_G: float):
     x, P = as_vector(x0, "x0"), check_covariance(P0, "P0")
     if x.ndim != 3:
         raise ValueError(f"x0 must have shape (runs, T, n), got shape {x.shape}")
-    F, Q = _check_motion(F, Q, x.shape[-1])
+    n = x.shape[-1]
+    F, Q = _check_motion(F, Q, n)
+    H, R = _check_measurement(H, R, n, f"n = {n} from x0")
+    P_G = _check_prob_gate(P_G)
     xs, Ps = [], []
     for k, scan in enumerate(scans):
         if k:
             x, P = _predict(x, P, F, Q)
-        Z, mask = check_scan(scan[0], scan[1], H.shape[0])
+        Z, mask = check_scan(scan[0], scan[1], H.shape[-2])
         g, u = _gate(x, P, Z[:, None], mask[:, None], H, R, P_G)
         logdet = np.linalg.slogdet(g.S)[1]
         cost, edge = g.d2 + logdet[..., None], g.gamma + logdet  # edge: the cost on each track's gate

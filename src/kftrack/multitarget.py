@@ -838,9 +838,11 @@ class MultiTargetTracker:
             pc = pos[ct]
             Z = self._unwrap(z[cj], zhat_b[pc[0]])
             lam = float(np.mean(self._lam(Z)))
-            try:
-                u = _assoc.jpda_update(xa[pc], Pa[pc], Z, Ha[pc], self.R, P_D=self.P_D, P_G=self.P_G,
-                                       clutter_density=lam, max_events=self.max_events)
+            if not 0.0 < lam < np.inf:  # (a callable clutter_density) the one check of jpda_update left to make
+                raise ValueError(f"clutter_density must be finite and > 0 for JPDA, got {lam!r} (mean over a cluster)")
+            try:  # jpda_update's kernel: the arguments are the tracker's, checked at construction and per scan
+                u = _assoc._jpda_update(xa[pc], Pa[pc], Z, np.ones(len(Z), dtype=bool), Ha[pc], self.R, self.P_D,
+                                        self.P_G, lam, self.max_events)
                 xu, Pu, beta = u.x, u.P, u.beta
             except ValueError as err:
                 if "max_events" not in str(err):
