@@ -195,6 +195,7 @@ GAP_STD_M = 1000.0
 _M_PER_DEG = 111_320.0
 _BIG = 1e12
 _LOG_BIG = math.log(_BIG)
+_LOG_2PI = math.log(2.0 * math.pi)
 
 #: Reasons, the keys of :attr:`TrackResult.counts` (every row gets exactly one).
 REASONS = ("used", "init", "non_finite", "non_increasing_time", "repeated_position", "gated",
@@ -421,226 +422,340 @@ def _imm_update(xp, Pp, S00, S01, S11, det, y0, y1, infl):
     return xs, Ps
 
 
+def _predict_row(mu, xs, F, Pi, seg=None):
+    r"""**Predict over a segment** (module docstring, point 3): the prediction of row :math:`k`,
+
+    .. math::
+
+        \hat z^{\mathrm{KF}}_k = \sum_j c_j\, H F_j \bar x_j, \qquad
+        \hat z^{\mathrm{seg}}_k = z_{k-1} + a\,(z_{k-1} - z_{k-2}), \qquad
+        \hat z_k = \hat z^{\mathrm{KF}}_k + \pi_k (\hat z^{\mathrm{seg}}_k - \hat z^{\mathrm{KF}}_k),
+
+    with :math:`c = \mu \Pi` the predicted mode probabilities, :math:`\bar x_j` the IMM-mixed
+    states, :math:`H` the positions and :math:`a = \Delta t / (t_{k-1} - t_{k-2})`.
+
+    Parameters
+    ----------
+    mu : (r,) mode probabilities after row k-1; xs : (r, 4) the modes' states ``[x, vx, y, vy]``.
+    F : (r, 4, 4) the modes' transitions over :math:`\Delta t`; Pi : (r, r) the Markov matrix.
+    seg : None (the filter alone), or ``(z2, z1, a, p)``: rows k-2 and k-1 (2,) each, :math:`a`,
+        and :math:`\pi_k` the probability that row k-1 is interpolated.
+
+    Returns
+    -------
+    pred : (2,) :math:`\hat z_k`; zf : (2,) :math:`\hat z^{\mathrm{KF}}_k`.
+    """
+    c = mu @ Pi
+    w = mu[:, None] * Pi / c[None, :]
+    zf = c @ np.einsum("jab,jb->ja", F[:, [0, 2]], w.T @ xs)
+    if seg is None:
+        return zf, zf
+    z2, z1, a, p = seg
+    return zf + p * (z1 + (z1 - z2) * a - zf), zf
+
+
+def _p_interpolated(counts, key) -> float:
+    r"""Probability :math:`\pi_k` that a row is interpolated, given ``key`` (the previous row's
+    status, the row's decimals): the mean :math:`n_1/(n_0 + n_1)` of the Beta posterior whose counts
+    ``counts[key] = [n_0, n_1]`` start at the uniform prior ``[1, 1]``."""
+    n0, n1 = counts.get(key, (1.0, 1.0))
+    return n1 / (n0 + n1)
+
+
+def _too_fast(zk, zj, dt: float) -> bool:
+    r"""**Gate**, spike test: the step from ``zj`` (2,) to ``zk`` (2,) in ``dt`` seconds is faster
+    than :data:`MAX_SPEED_MPS`, :math:`|z_k - z_j| > v_{\max}\,\Delta t`."""
+    return math.hypot(zk[0] - zj[0], zk[1] - zj[1]) > MAX_SPEED_MPS * dt
+
+
+def _spike_ahead(spike, zp, vk) -> bool:
+    r"""**Hold**: the ``spike`` ``(E, N, ...)`` lies ahead of the prediction ``zp`` (2,) along the
+    predicted velocity ``vk`` (2,), :math:`(z_s - \hat z_k)^\top v^- > 0` (point 4)."""
+    return (spike[0] - zp[0]) * vk[0] + (spike[1] - zp[1]) * vk[1] > 0.0
+
+
+def _held_axis(lat_k: float, lon_k: float, last_ll) -> int:
+    """The coordinate the resampler held from the previous row ``last_ll`` ``(lat, lon)``: 0 none,
+    1 longitude (east not measured), 2 latitude (north not measured; longitude wins if both)."""
+    held = 0 if lat_k != last_ll[0] else 2
+    if lon_k == last_ll[1]:
+        held = 1
+    return held
+
+
+def _innovation(xp, Pp, c, zk, cl: float, r0: float, held: int):
+    r"""**Gate**, the innovation of row ``zk`` (2,) per mode:
+
+    .. math::
+
+        y_j = z_k - H x^-_j, \qquad S_j = H P^-_j H^\top + c_\lambda \frac{\Delta^2}{12} v v^\top + r_0 I,
+        \qquad v = \sum_j c_j v^-_j,
+
+    ``cl`` :math:`= c_\lambda \Delta^2/12`, ``r0`` the white floor plus quantisation (m²); a held
+    coordinate (``held`` 1 east, 2 north, :func:`_held_axis`) gets :math:`10^{12}` m² added (not
+    measured). ``xp`` (r, 4), ``Pp`` (r, 4, 4) the predicted modes, ``c`` (r,) their probabilities.
+
+    Returns
+    -------
+    S00, S01, S11, det, y0, y1 : (r,) each: the entries of :math:`S_j`, its determinant, :math:`y_j`.
+    """
+    vx, vy = c @ xp[:, 1], c @ xp[:, 3]
+    S00 = Pp[:, 0, 0] + (cl * vx * vx + r0)
+    S01 = Pp[:, 0, 2] + cl * vx * vy
+    S11 = Pp[:, 2, 2] + (cl * vy * vy + r0)
+    if held == 1:
+        S00 = S00 + _BIG
+    elif held == 2:
+        S11 = S11 + _BIG
+    det = S00 * S11 - S01 * S01
+    return S00, S01, S11, det, zk[0] - xp[:, 0], zk[1] - xp[:, 2]
+
+
+def _nis(c, xp, S00, S01, S11, zk) -> float:
+    r"""**Gate**, the NIS of row ``zk`` (2,) under the moment-matched predictive density,
+
+    .. math::
+
+        \bar z = \sum_j c_j H x^-_j, \quad T = \sum_j c_j \left(S_j + (Hx^-_j - \bar z)(Hx^-_j - \bar z)^\top\right),
+        \quad \mathrm{NIS} = (z_k - \bar z)^\top T^{-1} (z_k - \bar z),
+
+    ``c`` (r,), ``xp`` (r, 4), ``S00, S01, S11`` (r,) as from :func:`_innovation`."""
+    zb0, zb1 = c @ xp[:, 0], c @ xp[:, 2]
+    d0, d1 = xp[:, 0] - zb0, xp[:, 2] - zb1
+    T00, T01, T11 = c @ (S00 + d0 * d0), c @ (S01 + d0 * d1), c @ (S11 + d1 * d1)
+    e0, e1 = zk[0] - zb0, zk[1] - zb1
+    return (T11 * e0 * e0 - 2.0 * T01 * e0 * e1 + T00 * e1 * e1) / (T00 * T11 - T01 * T01)
+
+
+def _gate(nis_k: float, gamma: dict, held: int):
+    r"""**Gate**, the NIS test: ``(gated, infl)``; gated if :math:`\mathrm{NIS} > \gamma_m`
+    (``gamma[m]``, :math:`m` measured coordinates), then the Huber-type inflation
+    :math:`\mathrm{NIS}/\gamma_m` of the innovation covariance, else 1."""
+    g = gamma[1 if held else 2]
+    return (True, nis_k / g) if nis_k > g else (False, 1.0)
+
+
+def _score(c, S00, S01, S11, det, y0, y1, held: int):
+    r"""**Score**, the row's log-likelihood term and the posterior mode probabilities,
+
+    .. math::
+
+        \ell_k = \log \sum_j c_j\, \mathcal N(y_j; 0, S_j), \qquad \mu_j = c_j\, \mathcal N(y_j; 0, S_j)\, e^{-\ell_k}
+
+    (log-sum-exp; on a row with one coordinate held, the marginal density of the other). Inputs
+    (r,) each, as from :func:`_innovation`. Returns ``(ell, mu (r,))``."""
+    m = (S11 * y0 * y0 - 2.0 * S01 * y0 * y1 + S00 * y1 * y1) / det
+    logl = -0.5 * (m + np.log(det)) - _LOG_2PI + np.log(c)
+    if held:
+        logl += 0.5 * (_LOG_BIG + _LOG_2PI)          # the density of the one measured coordinate
+    top = logl.max()
+    lik = np.exp(logl - top)
+    tot = lik.sum()
+    return top + math.log(tot), lik / tot
+
+
+class _Loop:
+    """The state of :func:`_run` over one flight: the rows (as lists), the per-row outputs, and the
+    current track (its last three accepted rows, the IMM states, the interval window, the missed
+    rows and a held spike). Its methods are the loop's bookkeeping; the numbers come from the steps."""
+
+    def __init__(self, t, lat, lon, enu, ok, r, lag_scale, r_floor):
+        K = t.size
+        self.pred, self.nis = np.full((K, 2), np.nan), np.full(K, np.nan)
+        self.vel, self.mprob = np.full((K, 2), np.nan), np.full((K, r), np.nan)
+        self.interp = np.zeros(K, dtype=bool)
+        self.reason = ["non_finite"] * K
+        self.tl, self.la, self.lo, self.ok = t.tolist(), lat.tolist(), lon.tolist(), ok.tolist()
+        self.E, self.N = enu[:, 0].tolist(), enu[:, 1].tolist()
+        self.lag_scale, self.r_floor, self.mu0 = lag_scale, r_floor, np.full(r, 1.0 / r)
+        self.loglik, self.n_lik = 0.0, 0
+        self.rows = []              # accepted rows of the current track, last three kept
+        self.status = {}            # row -> 0 recorded fix, 1 interpolated (known one row late)
+        self.counts = {}            # (status of row j-1, decimals of row j) -> [fixes, interpolated] + Beta(1, 1)
+        self.digits = {}            # row -> decimals (capped at 7)
+        self.committed = self.tc = None   # IMM state (mu, xs, Ps) after the rows known to be fixes, at time tc
+        self.tent = None            # committed updated with the last row
+        self.dts, self.dts_sorted = deque(), []
+        self.dmax = 4
+        self.missed = []
+        self.spike = None           # (E, N, t, lat, lon) of the last rejected spike while it may be held
+        self.undo = None            # (state, rows) before a gated spike candidate's update
+        self.holds = False          # the stream has held (repeated) a position before
+        self.last_t, self.last_ll = -math.inf, None
+
+    def z(self, j):
+        return np.array([self.E[j], self.N[j]])
+
+    def seen(self, k):
+        """Row ``k`` is taken as the last row seen (time and position)."""
+        self.last_t, self.last_ll = self.tl[k], (self.la[k], self.lo[k])
+
+    def restart(self, j, k, delta=None):
+        """**Restart** from rows ``j`` and ``k`` (:func:`_track_start`)."""
+        self.committed = self.tent = _track_start(self.z(j), self.z(k), self.tl[k] - self.tl[j], self.mu0,
+                                                  self.r_floor, self.lag_scale, self.dmax, delta)
+        self.tc = self.tl[k]
+
+    def screen(self, k, gap) -> bool:
+        """Skip a bad, out-of-order or repeated row (True); restart after a gap, start a track."""
+        tk = self.tl[k]
+        if tk <= self.last_t:
+            self.reason[k] = "non_increasing_time"
+            return True
+        if self.last_ll is not None and self.la[k] == self.last_ll[0] and self.lo[k] == self.last_ll[1]:
+            self.reason[k] = "repeated_position"
+            self.holds = True
+            return True
+        self.digits[k] = min(max(_decimals(self.la[k]), _decimals(self.lo[k])), 7)
+        if self.rows and tk - self.last_t > gap:
+            self.rows, self.committed, self.tent, self.missed, self.spike = [], None, None, [], None
+            self.reason[k] = "reinit_gap"
+        if not self.rows:           # first row of a track
+            self.rows = [k]
+            self.seen(k)
+            if self.reason[k] != "reinit_gap":
+                self.reason[k] = "init"
+            self.dmax = self.digits[k]
+            return True
+        if self.tent is None:       # second row of a track: two-point start
+            j = self.rows[-1]
+            dt0 = tk - self.tl[j]
+            if math.hypot(self.E[k] - self.E[j], self.N[k] - self.N[j]) / dt0 > MAX_SPEED_MPS:
+                self.rows, self.reason[k] = [k], "implausible_speed"
+            else:
+                self.restart(j, k)
+                self.rows.append(k)
+                self.reason[k] = "init"
+                self.vel[k] = self.z(k) - self.z(j)
+                self.vel[k] /= dt0
+                self.dts.append(dt0)
+                bisect.insort(self.dts_sorted, dt0)
+            self.seen(k)
+            return True
+        return False
+
+    def held_copy(self, k, zk, zf) -> bool:
+        """**Hold** (point 4): while the spike lies ahead, predict it; skip row ``k`` if it is a held
+        copy (undoing a pending update), else forget the spike."""
+        mu, xs, _ = self.tent
+        vk = mu @ xs[:, [1, 3]]
+        if _spike_ahead(self.spike, self.pred[k], vk):
+            self.pred[k] = self.spike[:2]
+            if _held_copy(zk, zf, self.spike, vk, self.tl[k], self.la[k], self.lo[k], self.undo is not None):
+                self.reason[k] = "repeated_position"
+                self.seen(k)
+                if self.undo is not None:
+                    self.tent, self.rows = self.undo
+                    self.undo = None
+                return True
+        self.spike = self.undo = None
+        return False
+
+    def skip_spike(self, k, zk):
+        """A step faster than :data:`MAX_SPEED_MPS`: skipped and held as a spike; after
+        :data:`LOST_AFTER` missed rows, two consistent ones restart the track."""
+        tk = self.tl[k]
+        self.missed.append(k)
+        self.reason[k] = "implausible_speed"
+        self.spike, self.undo = (zk[0], zk[1], tk, self.la[k], self.lo[k]), None
+        if len(self.missed) >= LOST_AFTER:
+            a = self.missed[-2]
+            if not _too_fast(zk, self.z(a), tk - self.tl[a]):
+                self.restart(a, k, self.dts_sorted[len(self.dts_sorted) // 2])
+                self.rows, self.status, self.missed, self.spike = [a, k], {}, [], None
+                self.reason[k] = "reinit_lost"
+        self.seen(k)
+
+    def frame(self, k, j1):
+        """**Frame**: row ``j1`` (k-1) is now known fix or interpolated (:func:`_interpolated`); a fix
+        is committed."""
+        s1 = 0
+        if len(self.rows) >= 2:
+            j2 = self.rows[-2]
+            s1 = _interpolated(self.la, self.lo, self.tl, j2, j1, k)
+            self.status[j1] = s1
+            self.interp[j1] = bool(s1)
+            self.counts.setdefault((self.status.get(j2, 0), self.digits[j1]), [1.0, 1.0])[s1] += 1.0
+        if s1 == 0:
+            self.committed, self.tc = self.tent, self.tl[j1]
+
+    def interval(self, dt) -> float:
+        """The nominal interval :math:`\\Delta`: the median of the last :data:`DT_WINDOW` intervals."""
+        self.dts.append(dt)
+        bisect.insort(self.dts_sorted, dt)
+        if len(self.dts) > DT_WINDOW:
+            del self.dts_sorted[bisect.bisect_left(self.dts_sorted, self.dts.popleft())]
+        return self.dts_sorted[len(self.dts_sorted) // 2]
+
+    def accept(self, k, reason, state):
+        """Row ``k`` updated the filter: the tentative ``state`` (mu, xs, Ps) and the row's outputs."""
+        self.tent = state
+        self.rows.append(k)
+        if len(self.rows) > 3:
+            del self.rows[0]
+        self.reason[k] = reason
+        self.mprob[k] = state[0]
+        self.vel[k] = state[0] @ state[1][:, [1, 3]]
+        self.seen(k)
+
+
 def _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, gap, use_segments=True, robust=True,
          spike_undo=True):
-    """The recipe's loop (no validation), row by row, of its named steps: the frame
-    (:func:`_frame_of`, :func:`_interpolated` for the resampler's rows), the hold of a spike
-    (:func:`_held_copy`), the restart (:func:`_track_start`), the IMM step (:func:`_imm_predict`,
-    the innovation and NIS gate, :func:`_imm_update`); the score is made from its predictions
-    (:func:`scored_rows`). Returns per-row arrays and the log-likelihood."""
-    K = t.size
-    r = len(q)
-    pred = np.full((K, 2), np.nan)
-    nis = np.full(K, np.nan)
-    vel = np.full((K, 2), np.nan)
-    mprob = np.full((K, r), np.nan)
-    interp = np.zeros(K, dtype=bool)
-    reason = ["non_finite"] * K
+    """The recipe's loop (no validation), row by row, as its named steps: the frame (:func:`_frame_of`,
+    :meth:`_Loop.screen`, :func:`_interpolated`), predict over a segment (:func:`_predict_row`), the
+    hold of a spike (:func:`_held_copy`), the gate (:func:`_too_fast`, :func:`_innovation`,
+    :func:`_nis`, :func:`_gate`), the restart (:func:`_track_start`), the IMM step
+    (:func:`_imm_predict`, :func:`_imm_update`) and the score (:func:`_score`; the one-step error
+    from the predictions, :func:`scored_rows`). Returns per-row arrays and the log-likelihood."""
+    s = _Loop(t, lat, lon, enu, ok, len(q), lag_scale, r_floor)
     model = _Modes(q, tau, omega)
-    tl = t.tolist()
-    la, lo = lat.tolist(), lon.tolist()
-    okl = ok.tolist()
-    E, N = enu[:, 0].tolist(), enu[:, 1].tolist()
-    loglik, n_lik = 0.0, 0
-    rows = []                  # accepted rows of the current track, last three kept
-    status = {}                # row -> 0 recorded fix, 1 interpolated (known one row late)
-    counts = {}                # (status of row j-1, decimals of row j) -> [fixes, interpolated] + Beta(1, 1)
-    digits = {}                # row -> decimals (capped at 7)
-    committed = None           # IMM state (mu, xs, Ps) after the rows known to be fixes, at time tc
-    tc = None
-    tent = None                # committed updated with the last row
-    dts, dts_sorted = deque(), []
-    dmax = 4
-    missed = []
-    spike = None               # (E, N, t, lat, lon) of the last rejected spike while it may be held
-    undo = None                # (state, rows) before a gated spike candidate's update
-    holds = False              # the stream has held (repeated) a position before
-    last_t, last_ll = -math.inf, None
-    mu0 = np.full(r, 1.0 / r)
-    log2pi = math.log(2.0 * math.pi)
-
-    def start(z0, z1, dt0, delta=None):
-        return _track_start(z0, z1, dt0, mu0, r_floor, lag_scale, dmax, delta)
-
-    for k in range(K):
-        if not okl[k]:
+    for k in range(t.size):
+        if not s.ok[k] or s.screen(k, gap):
             continue
-        tk = tl[k]
-        if tk <= last_t:
-            reason[k] = "non_increasing_time"
-            continue
-        if last_ll is not None and la[k] == last_ll[0] and lo[k] == last_ll[1]:
-            reason[k] = "repeated_position"
-            holds = True
-            continue
-        zk = np.array([E[k], N[k]])
-        digits[k] = min(max(_decimals(la[k]), _decimals(lo[k])), 7)
-        if rows and tk - last_t > gap:
-            rows, committed, tent, missed, spike = [], None, None, [], None
-            reason[k] = "reinit_gap"
-        if not rows:
-            rows = [k]
-            last_t, last_ll = tk, (la[k], lo[k])
-            if reason[k] != "reinit_gap":
-                reason[k] = "init"
-            dmax = digits[k]
-            continue
-        if tent is None:          # second row of a track: two-point start
-            j = rows[-1]
-            dt0 = tk - tl[j]
-            z0 = np.array([E[j], N[j]])
-            if math.hypot(zk[0] - z0[0], zk[1] - z0[1]) / dt0 > MAX_SPEED_MPS:
-                rows = [k]
-                reason[k] = "implausible_speed"
-                last_t, last_ll = tk, (la[k], lo[k])
-                continue
-            committed = tent = start(z0, zk, dt0)
-            tc = tk
-            rows.append(k)
-            reason[k] = "init"
-            vel[k] = zk - z0
-            vel[k] /= dt0
-            last_t, last_ll = tk, (la[k], lo[k])
-            dts.append(dt0)
-            bisect.insort(dts_sorted, dt0)
-            continue
-        # ---- predict row k: filter after row k-1, and the segment through rows k-2, k-1 ----
-        j1 = rows[-1]
-        dt = tk - tl[j1]
+        tk, zk, j1 = s.tl[k], s.z(k), s.rows[-1]
+        dt = tk - s.tl[j1]
+        seg = None
+        if use_segments and len(s.rows) >= 2:
+            j2 = s.rows[-2]
+            seg = (s.z(j2), s.z(j1), dt / (s.tl[j1] - s.tl[j2]),
+                   _p_interpolated(s.counts, (s.status.get(j2, 0), s.digits[j1])))
         F, Q, Pi = model(dt)
-        mu, xs, Ps = tent
-        c = mu @ Pi
-        w = mu[:, None] * Pi / c[None, :]
-        zf = c @ np.einsum("jab,jb->ja", F[:, [0, 2]], w.T @ xs)
-        if use_segments and len(rows) >= 2:
-            j2 = rows[-2]
-            cnt = counts.setdefault((status.get(j2, 0), digits[j1]), [1.0, 1.0])
-            p_seg = cnt[1] / (cnt[0] + cnt[1])
-            a = dt / (tl[j1] - tl[j2])
-            zl = np.array([E[j1] + (E[j1] - E[j2]) * a, N[j1] + (N[j1] - N[j2]) * a])
-            pred[k] = zf + p_seg * (zl - zf)
-        else:
-            pred[k] = zf
-        if spike is not None:
-            # A rejected spike is held by the resampler until the track reaches it (module
-            # docstring, point 4): while it lies ahead along the predicted velocity, the prediction
-            # is the held spike, and a row nearer the spike than the filter's prediction that has
-            # moved less than half of |v| (t - t_spike) from it (nearer "held" than "flown"), or that
-            # repeats one coordinate of the spike exactly, is a held copy: skipped like a repeated
-            # position, it leaves the filter as it was.
-            vk = mu @ xs[:, [1, 3]]
-            if (spike[0] - pred[k][0]) * vk[0] + (spike[1] - pred[k][1]) * vk[1] > 0.0:
-                pred[k] = spike[:2]
-                if _held_copy(zk, zf, spike, vk, tk, la[k], lo[k], undo is not None):
-                    reason[k] = "repeated_position"
-                    last_t, last_ll = tk, (la[k], lo[k])
-                    if undo is not None:
-                        tent, rows = undo
-                        undo = None
-                    continue
-            spike = undo = None
-        # ---- a step faster than MAX_SPEED_MPS from the last row used is not a fix: skipped, and
-        # its held copies with it (a forward spike then held, featured/belevingsvlucht); after
-        # LOST_AFTER rejected rows in a row, two consistent ones restart the track (relocation)
-        if math.hypot(zk[0] - E[j1], zk[1] - N[j1]) > MAX_SPEED_MPS * dt:
-            missed.append(k)
-            reason[k] = "implausible_speed"
-            spike, undo = (zk[0], zk[1], tk, la[k], lo[k]), None
-            if len(missed) >= LOST_AFTER:
-                a_ = missed[-2]
-                if math.hypot(zk[0] - E[a_], zk[1] - N[a_]) <= MAX_SPEED_MPS * (tk - tl[a_]):
-                    committed = tent = start(np.array([E[a_], N[a_]]), zk, tk - tl[a_],
-                                             dts_sorted[len(dts_sorted) // 2])
-                    tc = tk
-                    rows, status, missed, spike = [a_, k], {}, [], None
-                    reason[k] = "reinit_lost"
-            last_t, last_ll = tk, (la[k], lo[k])
+        s.pred[k], zf = _predict_row(s.tent[0], s.tent[1], F, Pi, seg)
+        if s.spike is not None and s.held_copy(k, zk, zf):
             continue
-        # ---- status of row k-1, now known: collinear with its neighbours? -------------
-        s1 = 0
-        if len(rows) >= 2:
-            j2 = rows[-2]
-            s1 = _interpolated(la, lo, tl, j2, j1, k)
-            status[j1] = s1
-            interp[j1] = bool(s1)
-            counts.setdefault((status.get(j2, 0), digits[j1]), [1.0, 1.0])[s1] += 1.0
-        if s1 == 0:
-            committed, tc = tent, tl[j1]
-        # ---- filter: committed state predicted to row k and updated with it ----------
-        F, Q, Pi = model(tk - tc)
-        c, xp, Pp = _imm_predict(*committed, F, Q, Pi)
-        dts.append(dt)
-        bisect.insort(dts_sorted, dt)
-        if len(dts) > DT_WINDOW:
-            del dts_sorted[bisect.bisect_left(dts_sorted, dts.popleft())]
-        delta = dts_sorted[len(dts_sorted) // 2]
-        dmax = max(dmax, digits[k])
-        r0 = r_floor + (_M_PER_DEG * 10.0 ** -dmax) ** 2 / 12.0
-        cl = lag_scale * delta * delta / 12.0
-        vx, vy = c @ xp[:, 1], c @ xp[:, 3]
-        S00 = Pp[:, 0, 0] + (cl * vx * vx + r0)
-        S01 = Pp[:, 0, 2] + cl * vx * vy
-        S11 = Pp[:, 2, 2] + (cl * vy * vy + r0)
-        # a coordinate equal to the previous row's is held by the resampler: not measured
-        held = 0 if la[k] != last_ll[0] else 2       # latitude held: north not measured
-        if lo[k] == last_ll[1]:
-            held = 1                                 # longitude held: east not measured
-        if held == 1:
-            S00 = S00 + _BIG
-        elif held == 2:
-            S11 = S11 + _BIG
-        det = S00 * S11 - S01 * S01
-        y0, y1 = zk[0] - xp[:, 0], zk[1] - xp[:, 2]
-        m = (S11 * y0 * y0 - 2.0 * S01 * y0 * y1 + S00 * y1 * y1) / det
-        logl = -0.5 * (m + np.log(det)) - log2pi + np.log(c)
-        if held:
-            logl += 0.5 * (_LOG_BIG + log2pi)        # the density of the one measured coordinate
-        top = logl.max()
-        lik = np.exp(logl - top)
-        tot = lik.sum()
-        loglik += top + math.log(tot)
-        n_lik += 1
-        # NIS of the moment-matched predictive density
-        zb0, zb1 = c @ xp[:, 0], c @ xp[:, 2]
-        d0, d1 = xp[:, 0] - zb0, xp[:, 2] - zb1
-        T00, T01, T11 = c @ (S00 + d0 * d0), c @ (S01 + d0 * d1), c @ (S11 + d1 * d1)
-        e0, e1 = zk[0] - zb0, zk[1] - zb1
-        nis[k] = (T11 * e0 * e0 - 2.0 * T01 * e0 * e1 + T00 * e1 * e1) / (T00 * T11 - T01 * T01)
-        infl = 1.0
-        if nis[k] > gamma[1 if held else 2]:
-            missed.append(k)
-            reason_k = "gated"
-            if len(missed) >= LOST_AFTER:
-                a_ = missed[-2]
-                committed = tent = start(np.array([E[a_], N[a_]]), zk, tk - tl[a_], delta)
-                tc = tk
-                rows, status, missed = [a_, k], {}, []
-                reason[k] = "reinit_lost"
-                last_t, last_ll = tk, (la[k], lo[k])
+        if _too_fast(zk, s.z(j1), dt):
+            s.skip_spike(k, zk)
+            continue
+        s.frame(k, j1)
+        F, Q, Pi = model(tk - s.tc)
+        c, xp, Pp = _imm_predict(*s.committed, F, Q, Pi)
+        delta = s.interval(dt)
+        s.dmax = max(s.dmax, s.digits[k])
+        held = _held_axis(s.la[k], s.lo[k], s.last_ll)
+        inn = _innovation(xp, Pp, c, zk, lag_scale * delta * delta / 12.0,
+                          r_floor + (_M_PER_DEG * 10.0 ** -s.dmax) ** 2 / 12.0, held)
+        ell, mu = _score(c, *inn, held)
+        s.loglik, s.n_lik = s.loglik + ell, s.n_lik + 1
+        s.nis[k] = _nis(c, xp, *inn[:3], zk)
+        gated, infl = _gate(s.nis[k], gamma, held)
+        if gated:
+            s.missed.append(k)
+            if len(s.missed) >= LOST_AFTER:          # lost: restart from the last two missed rows
+                a = s.missed[-2]
+                s.restart(a, k, delta)
+                s.rows, s.status, s.missed, s.reason[k] = [a, k], {}, [], "reinit_lost"
+                s.seen(k)
                 continue
-            if robust:
-                infl = nis[k] / gamma[1 if held else 2]   # Huber-type: innovation covariance inflated to the gate
-                if holds and spike_undo:
-                    # in a stream that holds positions, a gated row may be a spike: if the next
-                    # row is its held copy, the update with it is undone (point 4)
-                    spike, undo = (zk[0], zk[1], tk, la[k], lo[k]), (tent, list(rows))
-            else:
-                reason[k] = "gated"
+            if not robust:
+                s.reason[k] = "gated"
                 continue
+            if s.holds and spike_undo:   # a gated row may be a spike: undone if the next row holds it
+                s.spike, s.undo = (zk[0], zk[1], tk, s.la[k], s.lo[k]), (s.tent, list(s.rows))
         else:
-            missed = []
-            reason_k = "used"
-        xs, Ps = _imm_update(xp, Pp, S00, S01, S11, det, y0, y1, infl)
-        mu = lik / tot
-        tent = (mu, xs, Ps)
-        rows.append(k)
-        if len(rows) > 3:
-            del rows[0]
-        reason[k] = reason_k
-        mprob[k] = mu
-        vel[k] = mu @ xs[:, [1, 3]]
-        last_t, last_ll = tk, (la[k], lo[k])
-    return pred, nis, vel, mprob, interp, np.array(reason, dtype=object).astype(str), loglik, n_lik
+            s.missed = []
+        s.accept(k, "gated" if gated else "used", (mu, *_imm_update(xp, Pp, *inn, infl)))
+    reason = np.array(s.reason, dtype=object).astype(str)
+    return s.pred, s.nis, s.vel, s.mprob, s.interp, reason, s.loglik, s.n_lik
 
 
 def _gamma(false_rejection: float) -> dict:
@@ -1013,14 +1128,24 @@ def _constants(p: dict):
             p["lag_scale"], p["r_floor"])
 
 
+def _log_rmse(pred, enu, m) -> float:
+    r"""**Score**, the one-step error of a flight: the log of its RMSE over the scored rows,
+
+    .. math:: \log \mathrm{RMSE} = \tfrac12 \log \Big(\frac1n \sum_{k:\, m_k} |\hat z_k - z_k|^2\Big),
+
+    ``pred`` (K, 2) the predictions :math:`\hat z_k`, ``enu`` (K, 2) the rows :math:`z_k` (m), ``m`` (K,)
+    bool the scored rows (:func:`scored_rows`, ``n`` of them, all with a finite prediction)."""
+    d = pred[m] - enu[m]
+    return 0.5 * math.log(float(np.mean(np.sum(d * d, axis=1))))
+
+
 def _geo_rmse(prepared, q, tau, omega, lag_scale, r_floor, gamma, spike_undo):
     """Geometric mean over prepared flights of the recipe's one-step RMSE on the scored rows (m)."""
     logs = []
     for t, lat, lon, enu, ok, m in prepared:
         pred = _run(t, lat, lon, enu, ok, q, tau, omega, lag_scale, r_floor, gamma, REINIT_GAP_S, True,
                     spike_undo=spike_undo)[0]
-        d = pred[m] - enu[m]
-        logs.append(0.5 * math.log(float(np.mean(np.sum(d * d, axis=1)))))
+        logs.append(_log_rmse(pred, enu, m))
     return math.exp(sum(logs) / len(logs))
 
 
