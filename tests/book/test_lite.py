@@ -15,7 +15,6 @@ The hash check of the Pyodide files is tested without a browser: a tampered copy
 """
 from __future__ import annotations
 
-import functools
 import hashlib
 import http.server
 import json
@@ -28,7 +27,7 @@ from urllib.parse import urlparse
 
 import pytest
 
-from sitepages import ROOT
+from sitepages import ROOT, serve
 
 sys.path.insert(0, str(ROOT / "book" / "_ext"))
 import lite  # noqa: E402  (the build extension under test)
@@ -149,15 +148,8 @@ class _QuietHandler(http.server.SimpleHTTPRequestHandler):
 def site_url(built_site: Path):
     if not (built_site / "lite" / "notebooks" / "index.html").is_file():
         pytest.fail(f"{built_site}/lite was not built (book/_ext/lite.py)")
-    handler = functools.partial(_QuietHandler, directory=str(built_site))
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}"
-    finally:
-        server.shutdown()
-        server.server_close()
+    with serve(built_site, _QuietHandler) as url:
+        yield url
 
 
 @pytest.fixture(scope="module")
