@@ -28,6 +28,7 @@ CHAPTERS = {
     17: ("Tracking in clutter", "17-tracking-in-clutter", (10,)),
     18: ("Real aircraft", "18-tracking-real-aircraft", (9, 10)),
     19: ("Two engines", "19-two-engines", (9, 18)),
+    20: ("Many aircraft", "20-many-aircraft", (17, 18)),
 }
 
 

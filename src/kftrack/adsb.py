@@ -66,7 +66,9 @@ UNSEEN_FLIGHTS: tuple[str, ...] = (
 #: methods are judged and nothing is tuned. Robustness: the five noisy flights, for "never fails"
 #: checks (finite, causal, plausible), not for scores. No flight moves between sets.
 TRAINING_FLIGHTS: tuple[str, ...] = CHAPTER_FLIGHTS
+#: The test flights of the split: the 26 unseen flights (judged on, never tuned on).
 TEST_FLIGHTS: tuple[str, ...] = UNSEEN_FLIGHTS
+#: The robustness flights of the split: the five noisy flights (finite, causal, plausible checks only).
 ROBUSTNESS_FLIGHTS: tuple[str, ...] = NOISY_FLIGHTS
 #: Column names of a flight file, in order.
 COLUMNS: tuple[str, ...] = ("t_s", "lat_deg", "lon_deg", "alt_m", "groundspeed_mps", "track_deg",
@@ -553,7 +555,7 @@ class TrafficWindow:
         Returns
         -------
         ids_present : numpy.ndarray of int, shape (k,)
-            Indices into :attr:`ids` (the ``origin`` labels of a :class:`kftrack.sensors.surveillance.Scan`).
+            Indices into ``ids`` (the ``origin`` labels of a :class:`kftrack.sensors.surveillance.Scan`).
         xy : numpy.ndarray, shape (k, 2)
             East, north, m.
         v : numpy.ndarray, shape (k, 2)

@@ -28,7 +28,7 @@ Per scan and track (Bar-Shalom, Willett & Tian 2011, ch. 3, 6, 8; Blackman & Pop
   a cluster over the ``max_events`` guard falls back to *cheap JPDA* (Fitzgerald 1985),
   :math:`\beta_{tj} = G_{tj}/(\sum_{j'} G_{tj'} + \sum_{t'} G_{t'j} - G_{tj} + 1)` with
   :math:`G_{tj} = L_{tj}/L_{t0}` the likelihood ratio of the pair against a miss (exact for an
-  isolated target: it is then the PDAF), counted in :attr:`Tracks.fallbacks`;
+  isolated target: it is then the PDAF), counted in ``Tracks.fallbacks``;
 * **initiation**: detections left unassociated in two consecutive scans start a tentative track by
   two-point differencing (:func:`kftrack.trackmanagement.two_point_initiation`) of their
   Cartesian conversions (``sensor.to_cartesian``) when closer than
@@ -382,9 +382,9 @@ class MultiTargetTracker:
     (``Pi(dt)`` of each track's own interval); the measurement model is the tracker's ``sensor``
     (the modes' own ``h``, ``R`` are not used). The reported ``x``, ``P`` are the combined
     (moment-matched) estimate's first four components. Gating and the coarse test use the
-    combined prediction. **GNN**: the cost of a pair is :math:`-2\log\sum_j \bar c_j N(\nu_j; 0, S_j)
-    - m\log 2\pi` (the IMM's mixed likelihood; :math:`d^2 + \log|S|` for one mode), then each
-    mode's EKF update and :math:`\mu_j \propto \bar c_j N(\nu_j; 0, S_j)`, as :meth:`kftrack.imm.IMM.update`.
+    combined prediction. **GNN**: the cost of a pair is
+    :math:`-2\log\sum_j \bar c_j N(\nu_j; 0, S_j) - m\log 2\pi` (the IMM's mixed likelihood;
+    :math:`d^2 + \log|S|` for one mode), then each mode's EKF update and :math:`\mu_j \propto \bar c_j N(\nu_j; 0, S_j)`, as :meth:`kftrack.imm.IMM.update`.
     **JPDA**: an isolated track takes the IMM-PDAF update (the equations of
     :func:`kftrack.association.imm_pdaf_update`, each mode linearised at its own prediction:
     a PDAF per mode, :math:`\mu_j \propto \bar c_j\Lambda_j`); in a multi-target cluster the
