@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from kftrack import engines
+from kftrack import engines, tuning
 from kftrack.ekf import extended_kalman_filter
 from kftrack.kalman import kalman_filter, rts_smoother
 from kftrack.ukf import unscented_kalman_filter
@@ -111,17 +111,27 @@ def _check_gradient(grad, fd, bound, what):
         assert abs(grad[i] - fd[i]) <= bound[i], (what, i, grad[i], fd[i], bound[i])
 
 
-@pytest.mark.parametrize("name", FILTERS)
+def _build(params):
+    """(F, Q, H, R) of the kalman case at (q, r), a build for kftrack.tuning.total_loglik."""
+    return F_CV, params[0] * QBAR, H_CV, params[1] * R_CV
+
+
+@pytest.mark.parametrize("name", [*FILTERS, "total_loglik"])
 def test_grad_of_the_total_loglik_matches_central_differences(name):
-    run, make, n, cond = FILTERS[name]
+    # total_loglik: the kalman case through kftrack.tuning.total_loglik, whose JAX engine sums the
+    # log-likelihood in a loop that stores no sequence (kftrack.engines.run_total_scan)
+    run, make, n, cond = FILTERS["kalman" if name == "total_loglik" else name]
     zs, x0, P0 = make()
     zj = jnp.asarray(zs)
 
     def ell_np(phi):
         return float(np.nansum(run(zs, x0, P0, np.exp(phi[0]), np.exp(phi[1])).loglik))
 
-    vg = jax.jit(jax.value_and_grad(lambda p: jnp.nansum(run(zj, x0, P0, jnp.exp(p[0]), jnp.exp(p[1])).loglik)),
-                 **JIT)
+    if name == "total_loglik":
+        vg = jax.jit(jax.value_and_grad(lambda p: tuning.total_loglik(p, _build, zj, x0, P0)), **JIT)
+    else:
+        vg = jax.jit(jax.value_and_grad(lambda p: jnp.nansum(run(zj, x0, P0, jnp.exp(p[0]), jnp.exp(p[1])).loglik)),
+                     **JIT)
     value, grad = vg(jnp.asarray(PHI))
     ref = run(zs, x0, P0, *np.exp(PHI))
     delta = _loglik_delta(ref, n, cond(ref, np.exp(PHI[1])))

@@ -171,13 +171,16 @@ def test_grad_wrt_log_noise_levels_and_logits_matches_central_differences():
     # jax.grad over the NamedTuple itself (has_aux: the per-run values ride along), then the
     # chain rule to phi: d/dlog q_i = <dl/dQ_i, Q_i>, the logits directly
     params = jax.tree_util.tree_map(jnp.asarray, _params(PHI))
-    g, ell = jax.jit(jax.grad(lambda p: (lambda e, r: (e.sum(), e))(*imm.imm_loglik(p, zj, x0, P0)), has_aux=True),
-                     **JIT)(params)
+    # sequence=False: the sum alone, from a loop that stores nothing per step (engines.run_imm_total_scan)
+    g, ell = jax.jit(jax.grad(lambda p: (lambda e, r: (e.sum(), e))(*imm.imm_loglik(p, zj, x0, P0, sequence=False)),
+                              has_aux=True), **JIT)(params)
     value = float(np.sum(ell))
     grad = np.concatenate([np.sum(np.asarray(g.Q) * np.asarray(params.Q), axis=(1, 2)), np.asarray(g.logits).ravel()])
     ref = _numpy_run(PHI, zs, x0, P0)
     delta = _delta(ref)
     assert abs(value - ell_np(PHI)) <= 2 * delta
+    # per run too (the sum of the NumPy engine's terms, test (a)'s reference)
+    assert np.all(np.abs(np.asarray(ell) - _total(ref)) <= 2 * delta)
     # a row's logits shifted together leave Pi unchanged: each row of dl/dL sums to 0 (round-off: delta)
     assert abs(grad[2] + grad[3]) <= 2 * delta and abs(grad[4] + grad[5]) <= 2 * delta
     fd, bound = _central_difference(ell_np, PHI, np.full(PHI.size, STEP), delta)
@@ -204,6 +207,8 @@ def test_bad_params_are_named():
         imm.imm_loglik(p._replace(F=np.zeros((2, 3, 3))), zs, x0, P0)
     with pytest.raises(ValueError, match=r"^params.R must have shape \(\.\.\., 2, 2\)"):  # checked inside a trace
         jax.grad(lambda s: imm.imm_loglik(p._replace(R=s * jnp.eye(3)), zs, x0, P0)[0].sum())(1.0)
+    with pytest.raises(TypeError, match=r"^sequence must be True or False, got 'no'"):
+        imm.imm_loglik(p, zs, x0, P0, sequence="no")
     with pytest.raises(ValueError, match=r"^params.Q"):  # a concrete value is checked: not symmetric
         imm.imm_loglik(p._replace(Q=np.stack([QBAR[0], QBAR[1] + np.eye(4, k=1)])), zs, x0, P0)
     modes = [imm.KalmanMode(ConstantVelocity(ndim=2, q=1.0), R)] * 2

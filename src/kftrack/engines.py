@@ -60,6 +60,13 @@ outputs): per run and step the linear filter then writes n + n² + 2 numbers ins
 2n + 2n² + 2 (per-run covariances). Writing the results, not the arithmetic, bounds the JAX
 engine on small states.
 
+**The log-likelihood alone.** When only the total log-likelihood is wanted (what ``jax.grad``
+differentiates: :func:`kftrack.tuning.total_loglik`, :func:`kftrack.imm.imm_loglik` with
+``sequence=False``), :func:`run_total_scan` and :func:`run_imm_total_scan` run the same step
+under a plain ``jax.lax.scan`` whose carry is the state and the running sum, with no per-step
+output: the stored loop of the sequence would carry its whole output buffers, and under reverse
+mode their cotangents, through every step.
+
 **Precision.** Both engines compute in float64 unless ``float32`` is chosen explicitly. JAX
 computes in float32 unless ``jax_enable_x64`` is on; the JAX engine does not switch it on for
 you (that would change every other JAX computation in the session): with float64 requested and
@@ -79,8 +86,8 @@ from .kernels import _NUMPY, kf_predict, kf_update, logsumexp, moment_match, rts
 from .results import FilterResult
 
 __all__ = ["Kernel", "Checked", "NonFiniteOutput", "PerDt", "check_dts", "use_jax", "is_tracer", "check_dtype",
-           "choose_engine", "to_engine", "stand_in", "Given", "run_filter", "run_sequence", "run_scan", "run_imm_scan",
-           "run_smoother_scan"]
+           "choose_engine", "to_engine", "stand_in", "Given", "run_filter", "run_sequence", "run_scan",
+           "run_total_scan", "run_imm_scan", "run_imm_total_scan", "run_smoother_scan"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -225,7 +232,7 @@ def _value(a, jax_engine: bool):
 
 def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(), pred_steps=(), upd_args=(),
                upd_steps=(), sources=(), cov_shapes=None, dtype=None, progress: bool = False,
-               priors: bool = True) -> FilterResult:
+               priors: bool = True, total: bool = False):
     """The one call of a whole-sequence filter after its validation: choose the engine, convert the
     arrays to it and run the time loop (:func:`run_sequence` or :func:`run_scan`).
 
@@ -245,10 +252,14 @@ def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(),
         then it is computed once for all runs where they and the missing rows allow it.
     dtype : None, ``"float64"`` or ``"float32"`` (:func:`check_dtype`).
     progress, priors : as in :func:`run_sequence`.
+    total : if True, return only the log-likelihood of each run summed over its measured steps,
+        ``batch`` shaped (:func:`run_total_scan` on the JAX engine: no sequence is stored, so
+        ``jax.grad`` differentiates a loop that carries ``(x, P, sum)`` and nothing else; the
+        NumPy engine's ``nansum`` over time of ``loglik``).
 
     Returns
     -------
-    kftrack.results.FilterResult
+    kftrack.results.FilterResult, or with ``total`` an array ``batch``
         NumPy arrays (NumPy engine) or JAX arrays (JAX engine).
     """
     raws = [a.raw for a in (zs, x0, P0, *pred_args, *pred_steps, *upd_args, *upd_steps) if type(a) is Given]
@@ -267,6 +278,13 @@ def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(),
         gone_e = None  # no row missing (static): the compiled loop updates without selecting
     else:
         gone_e = conv(gone)
+    if total:
+        args = (conv(zs), gone_e, conv(x0), conv(P0), tuple(batch), tuple(cov_batch), predict, update)
+        kw = dict(pred_args=tuple(map(conv, pred_args)), pred_steps=tuple(map(conv, pred_steps)),
+                  upd_args=tuple(map(conv, upd_args)), upd_steps=tuple(map(conv, upd_steps)))
+        if jax_engine:
+            return run_total_scan(*args, **kw)
+        return np.nansum(run_sequence(*args, **kw, progress=progress, priors=False).loglik, axis=0)
     return (run_scan if jax_engine else run_sequence)(
         conv(zs), gone_e, conv(x0), conv(P0), tuple(batch), tuple(cov_batch), predict, update,
         pred_args=tuple(map(conv, pred_args)), pred_steps=tuple(map(conv, pred_steps)),
@@ -508,22 +526,64 @@ def run_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, 
     return FilterResult(*out)
 
 
-def _imm_impl(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch, mixing_weights):
+def _total_impl(zs, gone, x0, P0, pred_args, pred_steps, upd_args, upd_steps, *, batch, cov_batch, predict,
+                update):
+    jax = _jax()
+    jnp = jax.numpy
+    at = lambda a, k: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa: E731
+    n = x0.shape[-1]
+    x = jnp.broadcast_to(x0, batch + (n,))
+    P = jnp.broadcast_to(P0, cov_batch + (n, n))
+
+    def step(carry, k):
+        x, P, s = carry
+        g = None if gone is None else at(gone, k)
+        _, _, _, ll, x_next, P_next = _step(jnp, predict, update, x, P, at(zs, k), g, pred_args,
+                                            tuple(at(a, k) for a in pred_steps), upd_args,
+                                            tuple(at(a, k) for a in upd_steps), False)
+        ll = jnp.broadcast_to(ll if g is None else jnp.where(g, jnp.zeros((), ll.dtype), ll), batch)
+        return (jnp.broadcast_to(x_next, x.shape), jnp.broadcast_to(P_next, P.shape), s + ll), None
+
+    (_, _, s), _ = jax.lax.scan(step, (x, P, jnp.zeros(batch, x0.dtype)), jnp.arange(zs.shape[0]))
+    return s
+
+
+@lru_cache(maxsize=1)
+def _total_jit():
+    return _jax().jit(_total_impl, static_argnames=("batch", "cov_batch", "predict", "update"))
+
+
+def run_total_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, pred_args=(), pred_steps=(),
+                   upd_args=(), upd_steps=()):
+    r"""The JAX engine for the log-likelihood alone: the step of :func:`run_scan` under a plain
+    ``jax.lax.scan`` whose carry is ``(x, P, s)``, ``s`` the running sum over the measured steps
+    of ``loglik`` (:math:`\ell = \sum_k \log N(y_k; 0, S_k)`), with no per-step output. Under
+    ``jax.grad`` the loop's residuals are then the states of each step and nothing else: a stored
+    sequence (``_stored_loop``) would carry its whole output buffers, and their cotangents,
+    through every step of the reverse pass. Same arguments as :func:`run_scan` (no ``priors``);
+    returns ``s`` of shape ``batch``."""
+    return _total_jit()(zs, gone, x0, P0, tuple(pred_args), tuple(pred_steps), tuple(upd_args), tuple(upd_steps),
+                        batch=tuple(batch), cov_batch=tuple(cov_batch), predict=predict, update=update)
+
+
+def _imm_cycle(H, R, batch, mixing_weights):
+    """The step of the IMM's JAX engine, ``step(k, carry, zs, gone, Pis, Fs, Qs) -> (carry, parts)``
+    with ``carry = (log_mu, xs, Ps)`` and ``parts = (prior, post, loglik, g, xs, Ps)``: the combined
+    prior and posterior ``(mu, x, P)``, the mode likelihoods ``loglik`` (..., r) (not masked), the
+    missing flags ``g`` (...) and the mode-matched posteriors of step ``k``."""
     jax = _jax()
     jnp = jax.numpy
     r, nb = H.shape[0], len(batch)
     per_mode = lambda a: jnp.reshape(a, (r,) + (1,) * nb + a.shape[1:])  # noqa: E731  mode axis first
     H, R = per_mode(H), per_mode(R)
-    nan = jnp.asarray(jnp.nan, dtype=xs0.dtype)
+    at = lambda a, k: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa: E731
 
     def combine(log_mu, xs, Ps):
         mu = jnp.exp(log_mu)
         x, P = moment_match(mu, xs, Ps)
         return mu, x, P
 
-    at = lambda a, k: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa: E731
-
-    def step(k, carry):
+    def step(k, carry, zs, gone, Pis, Fs, Qs):
         log_mu, xs, Ps = carry  # (..., r), (r, ..., n), (r, ..., n, n)
         z, g, Pi, F, Q = (at(a, k) for a in (zs, gone, Pis, Fs, Qs))
         prior = combine(log_mu, xs, Ps)
@@ -538,15 +598,62 @@ def _imm_impl(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch, mixing_w
         w, log_cbar = mixing_weights(log_mu, Pi)  # (..., r_i, r_j)
         x0, P0 = moment_match(jnp.moveaxis(w, -1, 0), xs, Ps)  # (r_j, ..., n): the mixed start of each mode
         xs_n, Ps_n = kf_predict(x0, P0, per_mode(F), per_mode(Q))
-        out = prior + post + (jnp.where(gm, nan, loglik), xs, Ps)
-        return (jnp.broadcast_to(log_cbar, log_mu.shape), jnp.broadcast_to(xs_n, xs.shape),
-                jnp.broadcast_to(Ps_n, Ps.shape)), out
+        carry = (jnp.broadcast_to(log_cbar, log_mu.shape), jnp.broadcast_to(xs_n, xs.shape),
+                 jnp.broadcast_to(Ps_n, Ps.shape))
+        return carry, (prior, post, loglik, g, xs, Ps)
+
+    return step
+
+
+def _imm_impl(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch, mixing_weights):
+    jnp = _jax().numpy
+    r = H.shape[0]
+    nan = jnp.asarray(jnp.nan, dtype=xs0.dtype)
+    cycle = _imm_cycle(H, R, batch, mixing_weights)
+
+    def step(k, carry):
+        carry, (prior, post, loglik, g, xs, Ps) = cycle(k, carry, zs, gone, Pis, Fs, Qs)
+        return carry, prior + post + (jnp.where(g[..., None], nan, loglik), xs, Ps)
 
     _, out = _stored_loop(step, (log_mu0, xs0, Ps0), zs.shape[0])
     mu_p, x_p, P_p, mu, x, P, ll, xs, Ps = out
     xs = tuple(xs[:, i] for i in range(r))
     Ps = tuple(Ps[:, i] for i in range(r))
     return x_p, P_p, mu_p, x, P, mu, ll, xs, Ps
+
+
+def _imm_total_impl(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch, mixing_weights):
+    jax = _jax()
+    jnp = jax.numpy
+    cycle = _imm_cycle(H, R, batch, mixing_weights)
+    zero = jnp.zeros((), xs0.dtype)
+
+    def step(carry, k):
+        state, s = carry
+        log_mu = state[0]  # the predicted mode probabilities (log) of step k
+        state, (_, _, loglik, g, _, _) = cycle(k, state, zs, gone, Pis, Fs, Qs)
+        term = logsumexp(log_mu + jnp.where(g[..., None], zero, loglik), axis=-1)
+        return (state, s + jnp.where(g, zero, term)), None
+
+    (_, s), _ = jax.lax.scan(step, ((log_mu0, xs0, Ps0), jnp.zeros(batch, xs0.dtype)), jnp.arange(zs.shape[0]))
+    return s
+
+
+@lru_cache(maxsize=1)
+def _imm_total_jit():
+    return _jax().jit(_imm_total_impl, static_argnames=("batch", "mixing_weights"))
+
+
+def run_imm_total_scan(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, *, batch: tuple, mixing_weights):
+    r"""The log-likelihood alone of :func:`run_imm_scan` (same arguments): the IMM's cycle under a
+    plain ``jax.lax.scan`` whose carry is the state ``(log_mu, xs, Ps)`` and the running sum
+
+    .. math:: \ell = \sum_{k\ \text{measured}} \log \sum_j \bar c_{k,j}\, \Lambda_{k,j}
+
+    (:func:`kftrack.imm.imm_loglik`), with no per-step output, so that ``jax.grad`` carries no
+    stored sequence through the reverse pass (:func:`run_total_scan`). Returns ``ell`` (...)."""
+    return _imm_total_jit()(zs, gone, log_mu0, xs0, Ps0, Pis, Fs, Qs, H, R, batch=tuple(batch),
+                            mixing_weights=mixing_weights)
 
 
 @lru_cache(maxsize=1)

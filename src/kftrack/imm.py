@@ -59,7 +59,7 @@ from ._validate import check_finite, check_missing, check_state, is_tracer, stan
 from .kernels import Update, ekf_predict, ekf_update, kf_predict, kf_update, logsumexp, mixing_log_weights, moment_match
 from .kernels import rts_step, ukf_predict, ukf_update
 from .kernels import residual, unscented, wrap_state
-from .engines import PerDt, check_dtype, check_dts, choose_engine, run_imm_scan, to_engine
+from .engines import PerDt, check_dtype, check_dts, choose_engine, run_imm_scan, run_imm_total_scan, to_engine
 from .ukf import Points, check_points
 
 __all__ = [
@@ -981,7 +981,7 @@ def _imm_mixing_weights(log_mu, Pi):
     return array_namespace(logw).exp(logw), log_cbar
 
 
-def imm_loglik(params: IMMParams, zs, x0, P0, *, missing=None, dtype=None) -> tuple:
+def imm_loglik(params: IMMParams, zs, x0, P0, *, missing=None, dtype=None, sequence: bool = True) -> tuple:
     r"""The IMM filter of a linear mode bank as a pure function of its parameters, for
     ``jax.jit``, ``jax.vmap`` and ``jax.grad``: the same cycle as :func:`imm_filter` on the JAX
     engine (:func:`kftrack.engines.run_imm_scan`), from arrays alone, and its log-likelihood
@@ -1002,13 +1002,18 @@ def imm_loglik(params: IMMParams, zs, x0, P0, *, missing=None, dtype=None) -> tu
         ``False`` (none missing) or a concrete boolean ``(T,)``/``(T, ...)`` mask, as in
         :func:`kftrack.kalman.kalman_filter`.
     dtype : None or ``"float64"`` (needs ``jax_enable_x64``), or ``"float32"``.
+    sequence : True (default): also return the filtered sequence. False: only ``ell``, from a
+        loop that stores nothing per step (:func:`kftrack.engines.run_imm_total_scan`): what
+        ``jax.grad`` should differentiate (its reverse pass then carries the IMM's state alone, not
+        the stored sequence and its cotangents).
 
     Returns
     -------
-    (ell, IMMResult)
-        ``ell`` (...) the log-likelihood of each run, and the filtered sequence (JAX arrays):
-        ``jax.grad(imm_loglik, has_aux=True)`` differentiates ``ell`` (sum it first when runs are
-        batched). :func:`imm_params` builds ``params`` from an :class:`IMM` of :class:`KalmanMode`.
+    (ell, IMMResult or None)
+        ``ell`` (...) the log-likelihood of each run, and the filtered sequence (JAX arrays;
+        None with ``sequence=False``): ``jax.grad(imm_loglik, has_aux=True)`` differentiates
+        ``ell`` (sum it first when runs are batched). :func:`imm_params` builds ``params`` from an
+        :class:`IMM` of :class:`KalmanMode`.
 
     Examples
     --------
@@ -1022,7 +1027,7 @@ def imm_loglik(params: IMMParams, zs, x0, P0, *, missing=None, dtype=None) -> tu
     >>> res.mu.shape, bool(np.isfinite(ell))
     ((10, 2), True)
 
-    ``jax.grad(lambda p: imm_loglik(p, zs, x0, P0)[0])(p)`` is an :class:`IMMParams` of
+    ``jax.grad(lambda p: imm_loglik(p, zs, x0, P0, sequence=False)[0])(p)`` is an :class:`IMMParams` of
     gradients (``.logits`` ``(2, 2)``: :math:`\partial\ell/\partial L`); ``tests/test_compose_imm.py``
     checks it against central differences.
     """
@@ -1043,12 +1048,15 @@ def imm_loglik(params: IMMParams, zs, x0, P0, *, missing=None, dtype=None) -> tu
                                            (*params[:4], params.logits, params.log_mu0, x0, P0))
     log_Pi = jax.nn.log_softmax(logits, axis=-1)
     log_mu0 = jax.nn.log_softmax(log_mu0)
-    out = run_imm_scan(zs, gone, jnp.broadcast_to(log_mu0, batch + (r,)), jnp.broadcast_to(x0, (r,) + batch + (n,)),
-                       jnp.broadcast_to(P0, (r,) + batch + (n, n)), jnp.broadcast_to(jnp.exp(log_Pi), (T, r, r)),
-                       jnp.broadcast_to(F, (T, r, n, n)), jnp.broadcast_to(Q, (T, r, n, n)),
-                       jnp.broadcast_to(H, (r, m, n)), jnp.broadcast_to(R, (r, m, m)), batch=batch,
-                       mixing_weights=_imm_mixing_weights)
-    res = IMMResult(*out)
+    if not isinstance(sequence, (bool, np.bool_)):
+        raise TypeError(f"sequence must be True or False, got {sequence!r}")
+    args = (zs, gone, jnp.broadcast_to(log_mu0, batch + (r,)), jnp.broadcast_to(x0, (r,) + batch + (n,)),
+            jnp.broadcast_to(P0, (r,) + batch + (n, n)), jnp.broadcast_to(jnp.exp(log_Pi), (T, r, r)),
+            jnp.broadcast_to(F, (T, r, n, n)), jnp.broadcast_to(Q, (T, r, n, n)), jnp.broadcast_to(H, (r, m, n)),
+            jnp.broadcast_to(R, (r, m, m)))
+    if not sequence:
+        return run_imm_total_scan(*args, batch=batch, mixing_weights=_imm_mixing_weights), None
+    res = IMMResult(*run_imm_scan(*args, batch=batch, mixing_weights=_imm_mixing_weights))
     g = gone[..., None]
     step = logsumexp(jnp.log(res.mu_prior) + jnp.where(g, jnp.zeros((), dtype), res.loglik), axis=-1)
     return jnp.sum(jnp.where(gone, jnp.zeros((), dtype), step), axis=0), res

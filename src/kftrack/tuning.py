@@ -19,7 +19,9 @@ parameters enter through their logarithms, :math:`\phi = \log\theta`, so that ev
 
 :func:`total_loglik` evaluates :math:`\ell(e^\phi)` with the NumPy engine for NumPy input and
 with the JAX engine for a JAX ``log_params``, so that ``jax.grad`` and ``jax.hessian``
-give its exact derivatives. :func:`fit_noise` maximises it either with
+give its exact derivatives (on the JAX engine only the sum is computed, by a loop that stores no
+per-step sequence: ``kftrack.engines.run_total_scan``, so the reverse pass carries the states
+alone). :func:`fit_noise` maximises it either with
 ``scipy.optimize.minimize`` (NumPy engine, derivatives by finite differences or none) or
 by Newton's method with the exact gradient and Hessian from JAX and step halving.
 :func:`white_noise_build` makes the model of the common case
@@ -44,7 +46,7 @@ import numpy as np
 
 from ._validate import as_float_array, check_finite, check_missing
 from .engines import _jax, check_dts, use_jax
-from .kalman import kalman_filter
+from .kalman import _filter, kalman_filter
 
 __all__ = ["NoiseFit", "WhiteNoiseBuild", "total_loglik", "fit_noise", "white_noise_build"]
 
@@ -235,13 +237,18 @@ def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool 
         raise TypeError(f"build must return a tuple (F, Q, H, R), got {type(out).__name__}"
                         + (f" of length {len(out)}" if isinstance(out, tuple) else ""))
     F, Q, H, R = out
-    res = kalman_filter(zs, x0, P0, F, Q, H, R, time_varying=tv, priors=False, missing=missing)  # only loglik
     expect = np.broadcast_shapes(tuple(np.shape(zs)[1:-1]), tuple(np.shape(x0)[:-1]))
-    if tuple(res.loglik.shape[1:]) != expect:
-        raise ValueError(f"build: F, Q, H or R add batch axes {tuple(res.loglik.shape[1:])} to those of zs and x0 "
+    if jax_engine:  # the sum alone: a loop that stores no sequence (kftrack.engines.run_total_scan)
+        ell = _filter(zs, x0, P0, F, Q, H, R, None, tv, None, missing, None, total=True)
+        batch = tuple(ell.shape)
+    else:
+        res = kalman_filter(zs, x0, P0, F, Q, H, R, time_varying=tv, priors=False, missing=missing)  # only loglik
+        batch = tuple(res.loglik.shape[1:])
+    if batch != expect:
+        raise ValueError(f"build: F, Q, H or R add batch axes {batch} to those of zs and x0 "
                          f"{expect}; for per-step F, Q of shape (T, n, n) pass time_varying=True")
     if jax_engine:
-        return _jax().numpy.nansum(res.loglik)
+        return _jax().numpy.sum(ell)
     return float(np.nansum(res.loglik))
 
 
