@@ -81,7 +81,9 @@ def _agree(ref, got, T, kappa, names):
     return worst
 
 
-@pytest.mark.parametrize("T, runs, missing", [(16, 3, "mixed"), (1024, 2, "shared"), (10_000, 1, "none")])
+# T = 10^4 is recorded by benchmarks/compose.py, not here: under jit with optimisation level 0 the
+# one-run 10^4 case stalled for minutes on a loaded 2-core machine (21 s of CPU in 400 s of wall time).
+@pytest.mark.parametrize("T, runs, missing", [(16, 3, "mixed"), (1024, 2, "shared")])
 def test_parallel_filter_and_smoother_agree_with_the_sequential_engine(T, runs, missing):
     zs = _data(np.random.default_rng(T), T, runs, missing)
     seq = kalman_filter(zs, X0, P0, F, Q, H, R)
