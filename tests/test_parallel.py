@@ -1,7 +1,7 @@
 """The parallel-in-time filter and smoother (kftrack.parallel, issue 27) against the sequential
 engine (kalman_filter, rts_smoother on NumPy arrays), at T = 16 and 1024 with missing rows (the
-bound's growth with T exercised over a factor 64), and the filter alone at T = 10^4 with none
-(benchmarks/compose.py records the agreement at T = 10^2 ... 10^4 too). Each shape is compiled
+bound's growth with T exercised over a factor 64); benchmarks/compose.py records the agreement at
+T = 10^2 ... 10^4. Each shape is compiled
 once, inside the test's own jit at XLA's backend optimisation level 0 (as tests/test_compose.py:
 the same computation, so the same bounds, compiled in about half the time).
 
