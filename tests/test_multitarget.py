@@ -11,7 +11,7 @@ from kftrack.models import ConstantVelocity
 from kftrack.multitarget import MultiTargetTracker, Tracks, track_scans
 from kftrack.sensors import surveillance
 from kftrack.sensors.radar import RangeBearing
-from kftrack.trackmanagement import m_of_n_confirm, sprt_thresholds
+from kftrack.trackmanagement import m_of_n_confirm, sprt_thresholds, two_point_initiation
 
 CV = ConstantVelocity(ndim=2, q=1.0)
 
@@ -110,12 +110,16 @@ def test_gnn_single_target_equals_ekf():
     assert len(tr) == 1
     xs, Ps = ekf_reference(scans, x0, P0, 0.0, RADAR)
     t = tr.tracks[0]
-    assert np.array_equal(t.times, np.concatenate([s.times for s in scans]))
+    # the first row is the initial track itself, at its start
+    assert np.array_equal(t.times, np.concatenate([[0.0]] + [s.times for s in scans]))
+    assert np.array_equal(t.x[0], x0) and np.array_equal(t.P[0], P0)
+    ids, x = tr.snapshot(0.0)
+    assert ids.tolist() == [t.id] and np.array_equal(x[0], x0)
     # The same kernels in the same order; only the batched matrix products may sum in another
     # order: a relative difference of a few eps per operation, not amplified (the filter
     # contracts). 30 scans x ~100 flops x eps = 7e-13; 1e-10 leaves a margin of 100.
-    np.testing.assert_allclose(t.x, xs, rtol=1e-10, atol=1e-10 * np.abs(xs).max())
-    np.testing.assert_allclose(t.P, Ps, rtol=1e-10, atol=1e-10 * np.abs(Ps).max())
+    np.testing.assert_allclose(t.x[1:], xs, rtol=1e-10, atol=1e-10 * np.abs(xs).max())
+    np.testing.assert_allclose(t.P[1:], Ps, rtol=1e-10, atol=1e-10 * np.abs(Ps).max())
     assert t.confirmed.all()
 
 
@@ -143,12 +147,12 @@ def _pdaf_case(max_events):
 def test_jpda_single_target_equals_pdaf():
     tr, ref = _pdaf_case(10_000)
     t = tr.tracks[0]
-    assert len(tr) == 1 and len(t.times) == 30 and tr.fallbacks == 0
+    assert len(tr) == 1 and len(t.times) == 1 + 30 and tr.fallbacks == 0  # the start, then each scan
     assert (ref.n_gated >= 2).sum() >= 5  # the clutter does enter the gate: the weights matter
     # same kernels (gate, weights, PDA combination) on the same numbers: round-off only (the
     # augmented state adds exact zeros); 30 scans x ~200 flops x eps ~ 1e-12, margin 100
-    np.testing.assert_allclose(t.x, ref.x, rtol=1e-10, atol=1e-9)
-    np.testing.assert_allclose(t.P, ref.P, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(t.x[1:], ref.x, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(t.P[1:], ref.P, rtol=1e-10, atol=1e-9)
 
 
 def test_cheap_jpda_fallback_is_exact_for_an_isolated_target():
@@ -156,8 +160,8 @@ def test_cheap_jpda_fallback_is_exact_for_an_isolated_target():
     # target is the PDAF: beta_j = G_j / (sum G + 1) = L_j / (L_0 + sum L)
     tr, ref = _pdaf_case(1)
     assert tr.fallbacks == int((ref.n_gated > 0).sum()) > 0
-    np.testing.assert_allclose(tr.tracks[0].x, ref.x, rtol=1e-9, atol=1e-8)
-    np.testing.assert_allclose(tr.tracks[0].P, ref.P, rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(tr.tracks[0].x[1:], ref.x, rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(tr.tracks[0].P[1:], ref.P, rtol=1e-9, atol=1e-8)
 
 
 # --------------------------------------------------------------------------------------------
@@ -243,6 +247,38 @@ def test_m_of_n_confirmation_and_deletion(pattern, confirmed_at, deleted_at):
     assert tr.ends[t.id] == (np.inf if deleted_at is None else float(deleted_at))
     if deleted_at is not None:
         assert t.times[-1] == deleted_at - 1  # last recorded at the scan before its deletion
+
+
+@pytest.mark.parametrize("pattern, candidate_scans, born_at, confirmed_at", [
+    ([1, 0, 1, 1, 1, 1], 1, 3, 5),         # the 2nd detection missed: the start restarts at scan 2 ...
+    ([1, 0, 1, 1, 1, 1], 2, 2, 4),         # ... or (memory 2) pairs scans 0 and 2: confirmed a scan earlier
+    ([1, 0, 0, 1, 1, 1, 1], 2, 4, 6),      # two misses: the first detection is out of a 2-scan memory
+    ([1, 0, 0, 1, 1, 1, 1], 3, 3, 5),
+    ([1, 1, 1, 1], 2, 1, 3),               # consecutive detections: the same start as memory 1
+    ([1, 1, 1, 1], 1, 1, 3),
+])
+def test_candidate_memory(pattern, candidate_scans, born_at, confirmed_at):
+    sensor = PositionSensor(1.0)
+    x0 = np.array([1000.0, 20.0, 2000.0, -10.0])
+    z = [(CV.F(float(k)) @ x0)[[0, 2]][None] if h else np.zeros((0, 2)) for k, h in enumerate(pattern)]
+    scans = [Scan(float(k), np.full(len(zk), float(k)), zk) for k, zk in enumerate(z)]
+    tr = track_scans(scans, method="gnn", sensor=sensor, motion=CV, P_D=0.9, candidate_scans=candidate_scans)
+    assert len(tr) == 1
+    t = tr.tracks[0]
+    assert t.times[0] == born_at and t.times[np.flatnonzero(t.confirmed)[0]] == confirmed_at
+    # the start is the two-point differencing over the pair's own interval (detections born_at - first
+    # apart): the same operations, vectorised, so the same bits up to the batched products' order
+    first = max(k for k in range(born_at) if pattern[k])
+    x, P = two_point_initiation(z[first][0], z[born_at][0], dt=float(born_at - first), R=sensor.R)
+    np.testing.assert_allclose(t.x[0], x, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(t.P[0], P, rtol=1e-12, atol=1e-12)
+
+
+def test_candidate_scans_is_checked():
+    scans = _pattern_scans([1], PositionSensor(1.0))
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match=r"candidate_scans.*positive integer.*got"):
+            track_scans(scans, sensor=PositionSensor(1.0), motion=CV, P_D=0.9, candidate_scans=bad)
 
 
 def test_score_confirmation_and_deletion():
@@ -433,7 +469,7 @@ def test_phd_method_delegates_to_kftrack_phd(cluttered):
     scans, _, lam = cluttered
     tr = track_scans(scans[:8], method="phd", sensor=RADAR, motion=CV, P_D=0.9, clutter_density=lam)
     steps = phd.phd_filter(scans[:8], RADAR, CV, P_D=0.9, clutter_density=lam)
-    assert len(tr.steps) == 8
+    assert len(tr.steps) == 8 and tr.seconds.shape == (8,) and (tr.seconds > 0).all()  # each step timed
     for k in range(7):
         ids, x = tr.snapshot(steps[k].time)
         np.testing.assert_array_equal(x, steps[k].states)
@@ -487,13 +523,14 @@ def test_imm_single_target_equals_imm_filter(method):
     zs = np.concatenate([np.full((1, 2), np.nan), [s.z[0] for s in scans]])
     ref = imm_filter(est, zs, x0, P0, times=times)
     t = tr.tracks[0]
-    assert len(tr) == 1 and np.array_equal(t.times, times[1:])
+    assert len(tr) == 1 and np.array_equal(t.times, times)  # the start at t = 0, then each detection
+    np.testing.assert_allclose(tr.mu[t.id][0], [0.8, 0.2], rtol=1e-15)  # the start: mu0
     # the same kernels per mode; only batch shapes (an array dt, per-track rows) may change the
     # summation order: round-off of a few eps per operation over 30 contracting steps (1e-10, as
     # the EKF test above)
-    np.testing.assert_allclose(t.x, ref.x[1:, :4], rtol=1e-10, atol=1e-10 * np.abs(ref.x).max())
-    np.testing.assert_allclose(t.P, ref.P[1:, :4, :4], rtol=1e-10, atol=1e-10 * np.abs(ref.P).max())
-    np.testing.assert_allclose(tr.mu[t.id], ref.mu[1:], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(t.x[1:], ref.x[1:, :4], rtol=1e-10, atol=1e-10 * np.abs(ref.x).max())
+    np.testing.assert_allclose(t.P[1:], ref.P[1:, :4, :4], rtol=1e-10, atol=1e-10 * np.abs(ref.P).max())
+    np.testing.assert_allclose(tr.mu[t.id][1:], ref.mu[1:], rtol=1e-9, atol=1e-12)
     assert ref.mu[1:, 1].max() > 0.2 > 0.1 > ref.mu[1:, 1].min()  # the modes' weights move: the mixing matters
 
 

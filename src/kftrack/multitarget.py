@@ -29,11 +29,13 @@ Per scan and track (Bar-Shalom, Willett & Tian 2011, ch. 3, 6, 8; Blackman & Pop
   :math:`\beta_{tj} = G_{tj}/(\sum_{j'} G_{tj'} + \sum_{t'} G_{t'j} - G_{tj} + 1)` with
   :math:`G_{tj} = L_{tj}/L_{t0}` the likelihood ratio of the pair against a miss (exact for an
   isolated target: it is then the PDAF), counted in ``Tracks.fallbacks``;
-* **initiation**: detections left unassociated in two consecutive scans start a tentative track by
-  two-point differencing (:func:`kftrack.trackmanagement.two_point_initiation`) of their
-  Cartesian conversions (``sensor.to_cartesian``) when closer than
-  :math:`v_{max}\,\Delta t + \sqrt{\gamma\,\mathrm{tr}(C_1 + C_2)}`, one to one by
-  :func:`~kftrack.association.gnn_assignment` on the distance;
+* **initiation**: a detection left unassociated stays a candidate for ``candidate_scans`` scans; a
+  later unassociated detection closer to it than
+  :math:`v_{max}\,\Delta t + \sqrt{\gamma\,\mathrm{tr}(C_1 + C_2)}` (:math:`\Delta t` the pair's
+  own interval) starts a tentative track by two-point differencing
+  (:func:`kftrack.trackmanagement.two_point_initiation`) of their Cartesian conversions
+  (``sensor.to_cartesian``), one to one by :func:`~kftrack.association.gnn_assignment` on the
+  distance (default 2 scans: a 2-of-3 start, the second detection may follow one missed scan);
 * **confirmation and deletion**: M-of-N (:func:`kftrack.trackmanagement.m_of_n_confirm` on the
   last ``N`` scans' hits) or the sequential track score
   (:func:`~kftrack.trackmanagement.score_increment`, :func:`~kftrack.trackmanagement.sprt_thresholds`);
@@ -96,8 +98,9 @@ class TrackState(NamedTuple):
 
 
 class Track(NamedTuple):
-    """One track's history, one row per scan it lived through: ``id``, ``times`` (k,), ``x`` (k, 4),
-    ``P`` (k, 4, 4) and ``confirmed`` (k,) bool (its status after that scan)."""
+    """One track's history, one row per scan it lived through (an initial track's first row is its
+    start): ``id``, ``times`` (k,), ``x`` (k, 4), ``P`` (k, 4, 4) and ``confirmed`` (k,) bool (its
+    status after that scan)."""
 
     id: int
     times: np.ndarray
@@ -366,8 +369,15 @@ class MultiTargetTracker:
     max_std : delete a track whose position standard deviation :math:`\sqrt{P_{xx}+P_{yy}}` (m)
         exceeds this (default: no limit).
     v_max : the largest speed (m/s) of a target, for the two-point initiation gate.
+    candidate_scans : how many scans an unassociated detection stays an initiation candidate
+        (a positive integer): the two detections of a two-point start may be up to this many
+        scans apart. Default 2: the 2-of-3 history logic counted from a first detection (M-of-N
+        logic, Blackman & Popoli 1999; 2-of-3 is the default of MATLAB's ``trackHistoryLogic``,
+        which cites them) takes the second hit in either of the next 2 scans, so one missed
+        scan between the two does not restart the start; 1: consecutive scans only.
     initiate : start tracks from unassociated detections (False: only ``initial_tracks``).
-    initial_tracks : list of ``(t, x (4,), P (4, 4))`` known starts, confirmed from the start.
+    initial_tracks : list of ``(t, x (4,), P (4, 4))`` known starts, confirmed from the start (and
+        recorded as their tracks' first rows, at ``t``).
     max_events : JPDA guard, the largest number of joint events of one cluster enumerated exactly.
     turn_rate_std : with an IMM ``motion``, the prior standard deviation of the common state's
         components beyond ``[x, vx, y, vy]`` (the turn rate ``omega``, rad/s) of a new track
@@ -400,7 +410,7 @@ class MultiTargetTracker:
     def __init__(self, *, method: str = "gnn", sensor, motion, P_D: float, clutter_density=None,
                  P_G: float = 0.99, confirmation=(2, 3), deletion=(3, 3), max_std: float | None = None,
                  v_max: float = 400.0, initiate: bool = True, initial_tracks=(), max_events: int = 10_000,
-                 turn_rate_std: float = 0.05):
+                 turn_rate_std: float = 0.05, candidate_scans: int = 2):
         if method not in ("gnn", "jpda"):
             raise ValueError(f"method must be 'gnn' or 'jpda' for MultiTargetTracker ('phd' via track_scans), got {method!r}")
         self.R, self.angles = _check_sensor(sensor)
@@ -443,6 +453,10 @@ class MultiTargetTracker:
         if isinstance(max_events, bool) or int(max_events) != max_events or max_events < 1:
             raise ValueError(f"max_events must be a positive integer, got {max_events!r}")
         self.max_events = int(max_events)
+        if isinstance(candidate_scans, bool) or not isinstance(candidate_scans, (int, np.integer)) or candidate_scans < 1:
+            raise ValueError(f"candidate_scans (scans an unassociated detection stays an initiation candidate) must be "
+                             f"a positive integer, got {candidate_scans!r}")
+        self.candidate_scans = int(candidate_scans)
         self.initiate = bool(initiate)
         self.m = self.R.shape[0]
         self.gamma = _assoc.gate_threshold(self.P_G, self.m)
@@ -460,7 +474,8 @@ class MultiTargetTracker:
         self._score = np.zeros(0)
         self._peak = np.zeros(0)
         self._next_id = 0
-        self._cand = (np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0))  # unassociated, last scan
+        # initiation candidates: unassociated detections' positions, covariances, times, age in scans
+        self._cand = (np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0), np.zeros(0, dtype=int))
         self._last_time = -np.inf
         self._records: list[tuple] = []
         self._ends: dict[int, float] = {}
@@ -480,6 +495,8 @@ class MultiTargetTracker:
                                  + f", got x of shape {x0.shape} and P of shape {P0.shape}")
             self._add(x0[None], P0[None], np.array([float(t0)]), confirmed=True)
             self._last_time = max(self._last_time, float(t0))
+        if len(self._t):  # the initial tracks' first rows: their starts (so that snapshot(t0) reports them)
+            self._record()
 
     # ---------------------------------------------------------------------------------------
     def _add(self, x, P, t, confirmed):
@@ -636,9 +653,12 @@ class MultiTargetTracker:
         if self.initiate:
             self._births(times[~used], z[~used])
         if len(self._t):
-            self._records.append((self._id.copy(), self._t.copy(), self._x.copy(), self._P.copy(), self._conf.copy()))
-            if self._imm is not None:
-                self._mu_records.append(np.exp(self._logmu))
+            self._record()
+
+    def _record(self):
+        self._records.append((self._id.copy(), self._t.copy(), self._x.copy(), self._P.copy(), self._conf.copy()))
+        if self._imm is not None:
+            self._mu_records.append(np.exp(self._logmu))
 
     def _candidates(self, xr, Pr, times, z, t_ref):
         """Coarse test: pairs (track, detection) within per-component windows, vectorised."""
@@ -880,21 +900,13 @@ class MultiTargetTracker:
         clutter, :math:`\log(1 - P_D P_G + \sum_i L_i)` (an IMM mode's likelihood in IMM-PDAF).
         ``beta`` (..., M + 1): marginals to combine with instead of the PDAF's own (a cluster's
         JPDA marginals)."""
-        zhat = (H @ x[..., None])[..., 0]  # association._gate, with the kernel update and gamma kept
-        u = _k.kf_update(x, P, zhat, H, self.R)
-        S = u.S
-        nu = np.where(mask[..., None], Z - zhat[..., None, :], 0.0)
-        Sinv_nu = np.linalg.solve(S[..., None, :, :], nu[..., None])[..., 0]
-        d2 = np.where(mask, np.einsum("...i,...i->...", nu, Sinv_nu), np.inf)
-        _, logdet = np.linalg.slogdet(S)
-        logN = -0.5 * (d2 + (logdet + self.m * _assoc._LOG_2PI)[..., None])
-        g = _assoc.Gate(zhat, S, nu, d2, mask & (d2 <= self.gamma), self.gamma, None, logN)
+        g, u = _assoc._gate(x, P, Z, mask, H, self.R, self.P_G)
         logL0, logL, _, _ = _assoc._log_pda_terms(g, self.P_D, self.P_G, lam)
         table = np.concatenate([logL0[..., None], logL], axis=-1)
         total = _assoc._logsumexp(table)
         if beta is None:
             beta = np.exp(table - total[..., None])
-        x_post, P_post, _ = _assoc._pda_combine(x, P, u, nu, beta)
+        x_post, P_post, _ = _assoc._pda_combine(x, P, u, g.nu, beta)
         return x_post, P_post, total
 
     def _unwrap(self, z, zhat):
@@ -945,10 +957,12 @@ class MultiTargetTracker:
             self._keep(keep, t_ref)
 
     def _births(self, times, z):
-        pc, Cc, tc = self._cand
+        """Two-point starts from the unassociated detections ``z`` (k, m) at ``times`` (k,) and the
+        candidates of the last ``candidate_scans`` scans; the rest become candidates."""
+        pc, Cc, tc, age = self._cand
         conv = self.sensor.to_cartesian(z)
         pn, Cn = np.asarray(conv[0]).reshape(-1, 2), np.asarray(conv[1]).reshape(-1, 2, 2)
-        used = np.zeros(len(z), dtype=bool)
+        used, taken = np.zeros(len(z), dtype=bool), np.zeros(len(pc), dtype=bool)
         if len(pc) and len(pn):
             radius = self.v_max * float(times.max() - tc.min()) + np.sqrt(
                 self.gamma * (np.trace(Cc, axis1=1, axis2=2).max() + np.trace(Cn, axis1=1, axis2=2).max()))
@@ -974,8 +988,10 @@ class MultiTargetTracker:
                 if len(i_c):
                     x0, P0 = _two_point(pc[i_c], pn[j_n], times[j_n] - tc[i_c], 0.5 * (Cc[i_c] + Cn[j_n]))
                     self._add(x0, P0, times[j_n], confirmed=False)
-                used[j_n] = True
-        self._cand = (pn[~used], Cn[~used], times[~used])
+                used[j_n], taken[i_c] = True, True
+        keep, new = ~taken & (age + 1 < self.candidate_scans), ~used  # older candidates still in memory; new ones
+        self._cand = (np.concatenate([pc[keep], pn[new]]), np.concatenate([Cc[keep], Cn[new]]),
+                      np.concatenate([tc[keep], times[new]]), np.append(age[keep] + 1, np.zeros(int(new.sum()), int)))
 
 
 def _two_point(p1, p2, dt, C):
@@ -1000,7 +1016,7 @@ def _two_point(p1, p2, dt, C):
 def track_scans(scans, *, method: str = "gnn", sensor, motion, P_D: float, clutter_density=None, P_G: float = 0.99,
                 confirmation=(2, 3), deletion=(3, 3), max_std: float | None = None, v_max: float = 400.0,
                 initiate: bool = True, initial_tracks=(), max_events: int = 10_000, turn_rate_std: float = 0.05,
-                **phd_options) -> Tracks:
+                candidate_scans: int = 2, **phd_options) -> Tracks:
     r"""Track many targets through a sequence of scans.
 
     Parameters
@@ -1011,7 +1027,8 @@ def track_scans(scans, *, method: str = "gnn", sensor, motion, P_D: float, clutt
         :mod:`kftrack.phd` (:func:`kftrack.phd.phd_filter` with ``sensor``, ``motion``, ``P_D``,
         ``clutter_density`` and ``**phd_options``; the other arguments are not used). It keeps
         no identities: each extracted state is a one-row, confirmed :class:`Track` that ends at
-        the next scan, ``P`` NaN, and the :class:`~kftrack.phd.PHDStep` list is ``Tracks.steps``.
+        the next scan, ``P`` NaN, and the :class:`~kftrack.phd.PHDStep` list is ``Tracks.steps``
+        (each step's time in ``Tracks.seconds``, as for the other methods).
     Other arguments: see :class:`MultiTargetTracker`.
 
     Returns
@@ -1045,8 +1062,13 @@ def track_scans(scans, *, method: str = "gnn", sensor, motion, P_D: float, clutt
         except ImportError:
             raise NotImplementedError("method='phd' needs kftrack.phd (the Gaussian-mixture PHD filter), "
                                       "which is not in this version of the package") from None
-        return _phd_tracks(phd.phd_filter(scans, sensor, motion, P_D=P_D, clutter_density=clutter_density,
-                                          **phd_options), motion)
+        f = phd.GMPHD(sensor, motion, P_D=P_D, clutter_density=clutter_density, **phd_options)
+        steps, seconds = [], []
+        for scan in scans:  # phd.phd_filter, each step timed
+            start = _time.perf_counter()
+            steps.append(f.step(scan))
+            seconds.append(_time.perf_counter() - start)
+        return _phd_tracks(steps, motion, seconds)
     if phd_options:
         raise TypeError(f"track_scans got unexpected keyword arguments {sorted(phd_options)} (only method='phd' takes more)")
     if isinstance(scans, (str, bytes)) or not hasattr(scans, "__iter__"):
@@ -1054,7 +1076,7 @@ def track_scans(scans, *, method: str = "gnn", sensor, motion, P_D: float, clutt
     tracker = MultiTargetTracker(method=method, sensor=sensor, motion=motion, P_D=P_D, clutter_density=clutter_density,
                                  P_G=P_G, confirmation=confirmation, deletion=deletion, max_std=max_std, v_max=v_max,
                                  initiate=initiate, initial_tracks=initial_tracks, max_events=max_events,
-                                 turn_rate_std=turn_rate_std)
+                                 turn_rate_std=turn_rate_std, candidate_scans=candidate_scans)
     for k, scan in enumerate(scans):
         try:
             checked = tracker._check_scan(scan)
@@ -1064,7 +1086,7 @@ def track_scans(scans, *, method: str = "gnn", sensor, motion, P_D: float, clutt
     return tracker.tracks()
 
 
-def _phd_tracks(steps, motion) -> Tracks:
+def _phd_tracks(steps, motion, seconds) -> Tracks:
     """GM-PHD steps as unlabelled one-row tracks (so that snapshot, to_csv and plotting apply)."""
     tracks, ends, nid = [], {}, 0
     for k, st in enumerate(steps):
@@ -1073,6 +1095,6 @@ def _phd_tracks(steps, motion) -> Tracks:
             tracks.append(Track(nid, np.array([st.time]), x[None].copy(), np.full((1, 4, 4), np.nan), np.ones(1, bool)))
             ends[nid] = end
             nid += 1
-    out = Tracks(tracks, ends, motion)
+    out = Tracks(tracks, ends, motion, seconds=seconds)
     out.steps = steps
     return out
