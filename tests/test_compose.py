@@ -17,6 +17,8 @@ gradient 1 % off would fail it (twice the bound is below 1 % of every component)
 """
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -138,6 +140,63 @@ def test_grad_of_the_total_loglik_matches_central_differences(name):
     assert abs(float(value) - ell_np(PHI)) <= 2 * delta
     fd, bound = _central_difference(ell_np, PHI, np.full(2, STEP), delta)
     _check_gradient(np.asarray(grad), fd, bound + delta, name)
+
+
+# missing: (rows of NaN in the data, the missing= argument) of each covariance path of
+# tuning.total_loglik's JAX engine (kftrack.engines.run_total_scan: the covariance loop, then the
+# means loop): no row missing (one covariance recursion for all runs, no selection), a mask
+# shared by the runs (one recursion, the masked rows selected out), runs missing different rows
+# (a recursion per run)
+TOTAL_PATHS = {"none": ("none", False), "shared": ("shared", "mask"), "per run": ("mixed", None)}
+
+
+@pytest.mark.parametrize("path", TOTAL_PATHS)
+def test_grad_of_total_loglik_on_each_covariance_path(path):
+    rows, missing = TOTAL_PATHS[path]
+    zs, x0, P0 = data(np.random.default_rng(31), T=T, runs=RUNS, missing=rows)
+    if missing == "mask":  # static, one pattern for all runs; the masked rows hold NaN
+        missing = np.isnan(zs).all(-1)[:, 0]
+    zj = jnp.asarray(zs)
+    vg = jax.jit(jax.value_and_grad(lambda p: tuning.total_loglik(p, _build, zj, x0, P0, missing=missing)), **JIT)
+    value, grad = vg(jnp.asarray(PHI))
+    ref = _kf(zs, x0, P0, *np.exp(PHI))
+    delta = _loglik_delta(ref, 4, cond_S(ref, H_CV, np.exp(PHI[1]) * R_CV))
+    ell_np = lambda phi: tuning.total_loglik(phi, _build, zs, x0, P0)  # noqa: E731  NumPy engine
+    assert abs(float(value) - ell_np(PHI)) <= 2 * delta
+    # a NaN in a masked row that reached the reverse pass would make the gradient NaN (0 * NaN)
+    fd, bound = _central_difference(ell_np, PHI, np.full(2, STEP), delta)
+    _check_gradient(np.asarray(grad), fd, bound + delta, f"total_loglik, {path}")
+
+
+def test_grad_of_total_loglik_agrees_with_dynamax(monkeypatch):
+    # dynamax (benchmarks/requirements.txt; skipped where it is not installed) differentiates the
+    # same likelihood with per-run covariances, Cholesky solves and the short covariance update.
+    # Its solve adds 1e-9 I to S (psd_solve's diagonal_boost): set to 0 here, so the two compute
+    # one function and differ by round-off only, each gradient within delta of the exact one
+    # (module docstring): |difference| <= 2 delta, with the power of _check_gradient
+    inference = pytest.importorskip("dynamax.linear_gaussian_ssm.inference")
+    from dynamax.utils.utils import psd_solve
+
+    monkeypatch.setattr(inference, "psd_solve", functools.partial(psd_solve, diagonal_boost=0.0))
+    zs, x0, P0 = data(np.random.default_rng(32), T=T, runs=RUNS, missing="none")
+    zj, n, m = jnp.asarray(zs), 4, 2
+
+    def dyn_ll(phi):
+        q, r = jnp.exp(phi[0]), jnp.exp(phi[1])
+        params = inference.ParamsLGSSM(
+            initial=inference.ParamsLGSSMInitial(mean=jnp.asarray(x0), cov=jnp.asarray(P0)),
+            dynamics=inference.ParamsLGSSMDynamics(weights=jnp.asarray(F_CV), bias=jnp.zeros(n),
+                                                   input_weights=jnp.zeros((n, 0)), cov=q * QBAR),
+            emissions=inference.ParamsLGSSMEmissions(weights=jnp.asarray(H_CV), bias=jnp.zeros(m),
+                                                     input_weights=jnp.zeros((m, 0)), cov=r * R_CV))
+        return jnp.sum(jax.vmap(lambda y: inference.lgssm_filter(params, y).marginal_loglik, in_axes=1)(zj))
+
+    g_dyn = np.asarray(jax.jit(jax.grad(dyn_ll), **JIT)(jnp.asarray(PHI)))
+    g_kf = np.asarray(jax.jit(jax.grad(lambda p: tuning.total_loglik(p, _build, zj, x0, P0, missing=False)),
+                              **JIT)(jnp.asarray(PHI)))
+    ref = _kf(zs, x0, P0, *np.exp(PHI))
+    delta = _loglik_delta(ref, 4, cond_S(ref, H_CV, np.exp(PHI[1]) * R_CV))
+    _check_gradient(g_kf, g_dyn, np.full(2, 2 * delta), "total_loglik vs dynamax")
 
 
 # --------------------------------------------------------------------------------------------

@@ -65,7 +65,10 @@ differentiates: :func:`kftrack.tuning.total_loglik`, :func:`kftrack.imm.imm_logl
 ``sequence=False``), :func:`run_total_scan` and :func:`run_imm_total_scan` run the same step
 under a plain ``jax.lax.scan`` whose carry is the state and the running sum, with no per-step
 output: the stored loop of the sequence would carry its whole output buffers, and under reverse
-mode their cotangents, through every step.
+mode their cotangents, through every step. For the linear filter :func:`run_total_scan` runs the
+covariance recursion first, in a loop of its own that also forms :math:`S_k^{-1}` once per step,
+then the means, whose score :math:`y^\top S_k^{-1} y` leaves reverse mode two vectors per run
+and step (:math:`y` and :math:`S_k^{-1} y`) and one reduction over the runs per step.
 
 **Precision.** Both engines compute in float64 unless ``float32`` is chosen explicitly. JAX
 computes in float32 unless ``jax_enable_x64`` is on; the JAX engine does not switch it on for
@@ -74,6 +77,7 @@ x64 off it raises a ``ValueError`` that says how to enable it, or to pass ``dtyp
 """
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Callable
 from functools import lru_cache
@@ -82,7 +86,8 @@ from typing import NamedTuple
 import numpy as np
 
 from ._validate import as_float_array, check_finite, is_tracer, stand_in
-from .kernels import _NUMPY, kf_predict, kf_update, logsumexp, moment_match, rts_step
+from .kernels import (_NUMPY, kf_correct, kf_gain, kf_predict, kf_update, logsumexp, moment_match, mv, rts_step,
+                      solve_spd, sym)
 from .results import FilterResult
 
 __all__ = ["Kernel", "Checked", "NonFiniteOutput", "PerDt", "check_dts", "use_jax", "is_tracer", "check_dtype",
@@ -534,6 +539,10 @@ def _total_impl(zs, gone, x0, P0, pred_args, pred_steps, upd_args, upd_steps, *,
     n = x0.shape[-1]
     x = jnp.broadcast_to(x0, batch + (n,))
     P = jnp.broadcast_to(P0, cov_batch + (n, n))
+    s0, ks, zero = jnp.zeros(batch, x0.dtype), jnp.arange(zs.shape[0]), jnp.zeros((), x0.dtype)
+    if predict.fn is kf_predict and update.fn is kf_update and not upd_steps:
+        return _total_linear(jax, at, zs, gone, x, P, s0, ks, zero, pred_args, pred_steps, upd_args, predict,
+                             dict(update.static))
 
     def step(carry, k):
         x, P, s = carry
@@ -541,11 +550,93 @@ def _total_impl(zs, gone, x0, P0, pred_args, pred_steps, upd_args, upd_steps, *,
         _, _, _, ll, x_next, P_next = _step(jnp, predict, update, x, P, at(zs, k), g, pred_args,
                                             tuple(at(a, k) for a in pred_steps), upd_args,
                                             tuple(at(a, k) for a in upd_steps), False)
-        ll = jnp.broadcast_to(ll if g is None else jnp.where(g, jnp.zeros((), ll.dtype), ll), batch)
+        ll = jnp.broadcast_to(ll if g is None else jnp.where(g, zero, ll), batch)
         return (jnp.broadcast_to(x_next, x.shape), jnp.broadcast_to(P_next, P.shape), s + ll), None
 
-    (_, _, s), _ = jax.lax.scan(step, (x, P, jnp.zeros(batch, x0.dtype)), jnp.arange(zs.shape[0]))
+    (_, _, s), _ = jax.lax.scan(step, (x, P, s0), ks)
     return s
+
+
+def _total_linear(jax, at, zs, gone, x, P, s0, ks, zero, pred_args, pred_steps, upd_args, predict, opts):
+    r"""The log-likelihood of the linear Kalman filter in two loops. First the covariance
+    recursion, which does not depend on the data (:func:`kftrack.kernels.kf_gain`, ``kf_predict``;
+    batch ``cov_batch``, so computed once for all runs on the shared path), storing per step the
+    gain ``K``, :math:`S^{-1}` (:func:`kftrack.kernels.solve_spd` of ``S`` and the identity, made
+    exactly symmetric by ``sym``) and :math:`\log\det S`; then the means (:func:`kftrack.kernels.kf_correct`, ``kf_predict`` of the
+    mean alone) with :math:`\log N(y; 0, S) = -\tfrac12 (y^\top S^{-1} y + \log\det S + m \log 2\pi)`
+    (the equation of :func:`kftrack.kernels.innovation_score`).
+
+    Why not the kernels' score: it solves :math:`S^{-1} y` by triangular solves against the
+    entries of the unrolled Cholesky factor of ``S``, which on the shared path are scalars
+    broadcast over the runs. Reverse mode then treats each factor entry as its own variable: per
+    step it stores one residual ``(N,)`` per entry and reduces one product over the ``N`` runs per
+    entry (the jaxpr of ``jax.grad`` for the 2-D CV filter, ``m = 2``: six residuals
+    ``(T, N, 1)`` besides the innovations, six reductions over the runs per step in the compiled
+    reverse loop), per-run work for a quantity that is shared. With :math:`S^{-1}` formed once per
+    step and the derivative of :math:`y^\top S^{-1} y` written with matrix products
+    (:func:`_quadratic_form`), the reverse pass keeps per run and step two vectors of ``m``
+    numbers (``y`` and :math:`S^{-1} y`) and reduces one product,
+    :math:`\sum_i \bar\ell_i\, y_i y_i^\top`, per step (measured side by side, 2-D CV filter,
+    1000 runs x 500 steps, one core: ``jax.grad`` of the sum 1.6 x faster, no change of the
+    forward pass resolved by the spread). The value agrees with the one-loop score to the round-off
+    of the two solves, :math:`O(m\,\kappa(S)\,\varepsilon)` relative per term."""
+    jnp = jax.numpy
+    H, R = upd_args
+    n = x.shape[-1]
+    x_dummy = jnp.zeros((n,), x.dtype)  # the mean of kf_predict in the covariance loop: unused, dropped
+    m = H.shape[-2]
+    eye, log_2pi_m, quadratic = jnp.eye(m, dtype=x.dtype), m * math.log(2.0 * math.pi), _quadratic_form()
+
+    def cov_step(P, k):
+        gain = kf_gain(P, H, R, **opts)
+        P_post = gain.P if gone is None else jnp.where(at(gone, k)[..., None, None], P, gain.P)
+        _, P_next = predict(x_dummy, P_post, *pred_args, *(at(a, k) for a in pred_steps))
+        return jnp.broadcast_to(P_next, P.shape), (gain.K, sym(solve_spd(gain.S, eye)), gain.logdet)
+
+    _, gains = jax.lax.scan(cov_step, P, ks)
+
+    def mean_step(carry, inp):
+        x, s = carry
+        k, (K, S_inv, logdet) = inp
+        z = at(zs, k)
+        if gone is not None:
+            g = at(gone, k)
+            z = jnp.where(g[..., None], zero, z)  # a missing row may hold NaN: kept out of the gradient too
+        x_post, y = kf_correct(x, z, H, K)
+        ll = -0.5 * (quadratic(S_inv, y) + logdet + log_2pi_m)
+        if gone is not None:
+            x_post, ll = jnp.where(g[..., None], x, x_post), jnp.where(g, zero, ll)
+        x_next, _ = predict(x_post, None, *pred_args, *(at(a, k) for a in pred_steps))
+        return (jnp.broadcast_to(x_next, x.shape), s + jnp.broadcast_to(ll, s.shape)), None
+
+    (_, s), _ = jax.lax.scan(mean_step, (x, s0), (ks, gains))
+    return s
+
+
+@lru_cache(maxsize=1)
+def _quadratic_form():
+    r"""``q(A, y)`` :math:`= y^\top A y` over the batch axes, for a symmetric ``A`` (..., m, m) and
+    ``y`` (..., m), as a ``jax.custom_jvp``: the value as :math:`\sum_{ij} A_{ij} y_i y_j`, scalar
+    products that XLA fuses with the rest of the step into one loop over the runs; the derivative
+    :math:`\dot q = 2\,\dot y^\top A y + y^\top \dot A y` written with matrix products, so that
+    its transpose (the reverse pass) reduces :math:`\bar q\,y y^\top` over the runs in one
+    product. Differentiating the scalar form instead would give each entry :math:`A_{ij}`, shared
+    by the runs, a reduction over the runs of its own."""
+    jax = _jax()
+    jnp = jax.numpy
+
+    def value(A, y):
+        m = y.shape[-1]
+        return sum(A[..., i, j] * y[..., i] * y[..., j] for i in range(m) for j in range(m))
+
+    q = jax.custom_jvp(value)
+
+    @q.defjvp
+    def _(primals, tangents):
+        (A, y), (dA, dy) = primals, tangents
+        return value(A, y), jnp.sum(2.0 * dy * mv(A, y) + y * mv(dA, y), axis=-1)
+
+    return q
 
 
 @lru_cache(maxsize=1)
@@ -560,8 +651,10 @@ def run_total_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, up
     of ``loglik`` (:math:`\ell = \sum_k \log N(y_k; 0, S_k)`), with no per-step output. Under
     ``jax.grad`` the loop's residuals are then the states of each step and nothing else: a stored
     sequence (``_stored_loop``) would carry its whole output buffers, and their cotangents,
-    through every step of the reverse pass. Same arguments as :func:`run_scan` (no ``priors``);
-    returns ``s`` of shape ``batch``."""
+    through every step of the reverse pass. With the linear kernels (``kf_predict``,
+    ``kf_update``) two loops, covariances then means (``_total_linear``: the reverse pass of the
+    score touches per run the innovations alone). Same arguments as :func:`run_scan` (no
+    ``priors``); returns ``s`` of shape ``batch``."""
     return _total_jit()(zs, gone, x0, P0, tuple(pred_args), tuple(pred_steps), tuple(upd_args), tuple(upd_steps),
                         batch=tuple(batch), cov_batch=tuple(cov_batch), predict=predict, update=update)
 

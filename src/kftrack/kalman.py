@@ -336,6 +336,25 @@ def _compact(a, nb: int):
     return None
 
 
+def _smoother_transitions(F, dt, times, time_varying: bool, T: int, n: int, batch: tuple):
+    """The transition of a smoother, checked against the filter's result (states ``n``, ``T``
+    steps, batch axes ``batch``): ``(F_h, per_step)``, ``F_h`` ``(..., n, n)`` or, with
+    ``per_step``, ``(T, ..., n, n)``, as :func:`_transitions` gives it (``Q``, which the
+    smoother does not use, an identity), its batch axes broadcasting to ``batch``; else a
+    ``ValueError`` naming ``F``. Shared by :func:`rts_smoother` and
+    :func:`kftrack.parallel.parallel_smoother`."""
+    eye = np.eye(n)
+    timed = dt is not None or times is not None
+    F_h, _, per_step = _transitions(F, (lambda d: eye) if timed else (eye if not time_varying else
+                                    np.broadcast_to(eye, (T, n, n))), n, T, dt, time_varying, "the filter's states",
+                                    times)
+    tb = 1 if per_step else 0
+    if broadcast_batch({"result": batch, "F": F_h.shape[tb:-2]}) != batch:
+        raise ValueError(f"F must have shape ({n}, {n}) or the filter's batch axes {batch} + ({n}, {n}), "
+                         f"got shape {F_h.shape}")
+    return F_h, per_step
+
+
 def rts_smoother(result: FilterResult, F, *, dt=None, times=None, time_varying: bool = False) -> SmootherResult:
     r"""Rauch–Tung–Striebel smoother over a :class:`FilterResult` (Särkkä 2013, Thm 8.2).
 
@@ -392,15 +411,8 @@ def rts_smoother(result: FilterResult, F, *, dt=None, times=None, time_varying: 
     n = result.x.shape[-1]
     T = result.x.shape[0]
     batch = result.x.shape[1:-1]
-    eye = np.eye(n)
-    timed = dt is not None or times is not None
-    F_h, _, per_step = _transitions(F, (lambda d: eye) if timed else (eye if not time_varying else
-                                    np.broadcast_to(eye, (T, n, n))), n, T, dt, time_varying, "the filter's states",
-                                    times)
+    F_h, per_step = _smoother_transitions(F, dt, times, time_varying, T, n, batch)
     tb = 1 if per_step else 0
-    if broadcast_batch({"result": batch, "F": F_h.shape[tb:-2]}) != batch:
-        raise ValueError(f"F must have shape ({n}, {n}) or the filter's batch axes {batch} + ({n}, {n}), "
-                         f"got shape {F_h.shape}")
     if jax_engine:  # the same step, rts_step, under a reversed jax.lax.scan
         if T < 2:
             return SmootherResult(result.x, result.P, result.P[:0])

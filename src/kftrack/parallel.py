@@ -69,7 +69,7 @@ import numpy as np
 
 from ._validate import as_matrix, broadcast_batch, check_covariance, check_missing, check_state, stand_in
 from .engines import check_dtype, to_engine, use_jax
-from .kalman import _transitions
+from .kalman import _smoother_transitions, _transitions
 from .kernels import kf_predict, kf_update, matrix_transpose, mm, mv, rts_step, solve_spd, sym
 from .results import FilterResult, SmootherResult
 
@@ -362,15 +362,8 @@ def parallel_smoother(result: FilterResult, F, *, dt=None, times=None, time_vary
                          "with priors=True (the default)")
     shape = tuple(result.x.shape)
     T, n, batch = shape[0], shape[-1], shape[1:-1]
-    eye = np.eye(n)
-    timed = dt is not None or times is not None
-    F_h, _, per_step = _transitions(F, (lambda d: eye) if timed else (eye if not time_varying else
-                                    np.broadcast_to(eye, (T, n, n))), n, T, dt, time_varying, "the filter's states",
-                                    times)
-    tb = 1 if per_step else 0
-    if broadcast_batch({"result": batch, "F": F_h.shape[tb:-2]}) != batch:
-        raise ValueError(f"F must have shape ({n}, {n}) or the filter's batch axes {batch} + ({n}, {n}), "
-                         f"got shape {F_h.shape}")
+    F_h, per_step = _smoother_transitions(F, dt, times, time_varying, T, n, batch)
+    timed = dt is not None or times is not None  # F a function of the interval: the checked stack F_h
     jnp = _jax().numpy
     dt_ = np.dtype(str(result.x.dtype))
     Fj = _engine(None if timed else F, F_h, dt_)
