@@ -16,7 +16,7 @@ help:
 	@echo "make lab      JupyterLab on notebooks/"
 	@echo "make execute  re-execute every notebook in place (NB=notebooks/02-*.ipynb for one)"
 	@echo "make portability  unit tests + nbval under several OpenBLAS/NumPy SIMD kernels (UNIT_ONLY=1)"
-	@echo "make lite-check  every chapter run in JupyterLite in headless Chromium, time per chapter (~1 min each)"
+	@echo "make lite-check  every chapter run in JupyterLite in headless Chromium, time per chapter (2–4 min each on 2 shared cores)"
 	@echo "make clean    remove _build/ and caches (keeps .venv)"
 	@echo "make benchmark  kftrack vs peers (installs benchmarks/requirements.txt; ~5 min; writes book/performance_results.md)"
 

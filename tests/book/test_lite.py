@@ -5,9 +5,8 @@ The built site (``_build/html``, with ``lite/`` built by ``book/_ext/lite.py``) 
 chapter in the JupyterLite notebook interface, runs all cells with the interface's "Run All"
 command, and checks that every code cell ran (has an execution count) without an error output.
 Every request that would leave 127.0.0.1 is recorded and refused, and Chromium resolves no
-other host at all. In a chapter with widgets, a slider renders (screenshot in
-``_build/screenshots/``) and moving it changes the figure. In ``make test``: an early chapter
-that has widgets and Stone Soup (04), the IMM chapter (10) and the clutter chapter (17).
+other host at all. In a chapter with widgets (04, 06), a slider renders (screenshot in
+``_build/screenshots/``) and dragging it changes the figure. In ``make test``: :data:`DEFAULT`.
 ``make lite-check`` runs every chapter that has a Lite copy (KFTRACK_LITE_CHAPTERS=all) and
 prints the time of each and what it downloaded into an empty browser cache.
 
@@ -37,9 +36,9 @@ SHOTS = ROOT / "_build" / "screenshots"
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
         "--disable-component-update", "--disable-sync", "--disable-dev-shm-usage",
         "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1"]  # no other host resolves at all
-# In `make test`: chapter 01 only, for now. The issue's set (04 with its widgets, 10, 17) waits until the
-# slider move passes and its time on an idle 2-core machine is measured (issue 29 is open); `make lite-check`
-# or KFTRACK_LITE_CHAPTERS="04 10 17" runs them.
+# In `make test`: chapter 01 only, for now. The issue's set (01, 10, 17 and 04 with its slider) passes
+# but took 525 s together at load average ~7 on 2 cores, 430 s more than 01 alone (DEVELOPERS.md): over
+# the ~4 min the budget leaves. `make lite-check` or KFTRACK_LITE_CHAPTERS="04 10 17" runs them.
 DEFAULT = ("01",)
 # Hang guards, not performance claims (times are in DEVELOPERS.md): on a 2-core machine shared
 # with a load average of ~15, the kernel took up to 270 s to start and a chapter up to 400 s.
@@ -225,7 +224,14 @@ def _uses_widgets(notebook: str) -> bool:
 
 
 def _move_a_slider(lab: _Lite, chapter: str) -> None:
-    """The first interact's slider renders (screenshot) and moving it changes its figure."""
+    """The first interact's slider renders (screenshot) and dragging its handle changes its value
+    and then its figure, twice (JupyterLite 0.4 with ipywidgets 8.1.3+ updated an interact only
+    once: ipywidgets#3935).
+
+    The handle is dragged with the mouse, as a reader does. Arrow keys on the focused handle do not
+    move it in the notebook interface, most likely because its command-mode shortcuts bind
+    ArrowLeft/ArrowRight (collapse/expand a heading) for any focused element that is not an
+    editor (DEVELOPERS.md)."""
     page = lab.page
     box = page.locator(".widget-interact").first
     box.wait_for(state="attached", timeout=60_000)
@@ -239,26 +245,33 @@ def _move_a_slider(lab: _Lite, chapter: str) -> None:
     box.wait_for(state="visible", timeout=60_000)
     handle = box.locator(".noUi-handle").first
     handle.wait_for(state="visible", timeout=60_000)
+    readout = box.locator(".widget-readout").first
     figure = box.locator("img").first
     figure.wait_for(state="visible", timeout=120_000)
-    before = figure.get_attribute("src")
     SHOTS.mkdir(parents=True, exist_ok=True)
     shot = SHOTS / f"lite_{chapter}_widget.png"
     box.screenshot(path=str(shot))
     assert shot.stat().st_size > 10_000, "the widget's screenshot is nearly empty"
-    handle.focus()
-    for _ in range(3):
-        page.keyboard.press("ArrowRight")
-    page.wait_for_function("""(before) => {
-        const img = document.querySelector('.widget-interact img');
-        return img && img.getAttribute('src') !== before;
-    }""", arg=before, timeout=120_000)
+    for dx in (60, -30):  # two moves: the second must redraw too
+        value, src = readout.text_content(), figure.get_attribute("src")
+        handle.scroll_into_view_if_needed()
+        b = handle.bounding_box()
+        x, y = b["x"] + b["width"] / 2, b["y"] + b["height"] / 2
+        page.mouse.move(x, y)
+        page.mouse.down()
+        page.mouse.move(x + dx, y, steps=5)
+        page.mouse.up()
+        assert readout.text_content() != value, f"dragging the slider by {dx} px did not change its value {value}"
+        page.wait_for_function("""(before) => {
+            const img = document.querySelector('.widget-interact img');
+            return img && img.getAttribute('src') !== before;
+        }""", arg=src, timeout=120_000)
 
 
 @pytest.mark.parametrize("chapter", _chapters())
 def test_chapter_runs_in_the_browser(browser, site_url: str, chapter: str) -> None:
     """All cells run without an error, nothing leaves 127.0.0.1; in a widget chapter (04, 06) a
-    slider renders and moving it changes the figure."""
+    slider renders and dragging it changes the figure (twice)."""
     notebook = _notebook(chapter)
     _QuietHandler.sent, _QuietHandler.files = 0, {}
     t0 = time.perf_counter()
