@@ -7,6 +7,9 @@ STAMP  := $(VENV)/.installed
 # MPLBACKEND is deliberately not set: it would drop the figures from executed notebooks.
 RUN    := PYTHONHASHSEED=0 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 NBVAL  := --nbval --nbval-current-env --nbval-sanitize-with tests/nbval_sanitize.cfg
+# Both cores (pytest-xdist): whole files go to a worker, so a notebook's cells run in order in one kernel.
+JOBS   ?= 2
+XDIST  := -n $(JOBS) --dist loadfile
 
 .PHONY: help venv book test unit nbval booktest lab execute clean portability benchmark lite-check
 
@@ -37,10 +40,10 @@ book: $(STAMP)
 
 # unit tests and the Examples sections of the package docstrings (doctests)
 unit: $(STAMP)
-	$(RUN) $(BIN)/python -m pytest -q tests --ignore=tests/book --doctest-modules src/kftrack
+	$(RUN) $(BIN)/python -m pytest -q $(XDIST) tests --ignore=tests/book --doctest-modules src/kftrack
 
 nbval: $(STAMP)
-	$(RUN) $(BIN)/python -m pytest -q $(NBVAL) notebooks
+	$(RUN) $(BIN)/python -m pytest -q $(XDIST) $(NBVAL) notebooks
 
 booktest: $(STAMP)
 	$(RUN) $(BIN)/python -m pytest -q tests/book

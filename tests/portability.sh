@@ -49,12 +49,12 @@ summary=()
 for i in "${!configs[@]}"; do
   cfg=${configs[$i]}
   core=$(env "$cfg" "$PY" -c "$CORENAME" 2>/dev/null || echo "?")
-  "${RUN[@]}" "$cfg" "$PY" -m pytest -q -p no:cacheprovider tests --ignore=tests/book >"$log/unit$i.txt" 2>&1
+  "${RUN[@]}" "$cfg" "$PY" -m pytest -q -p no:cacheprovider -n 2 --dist loadfile tests --ignore=tests/book >"$log/unit$i.txt" 2>&1
   u=$?
   line="[$cfg] (openblas: $core) unit: $(tail -n 1 "$log/unit$i.txt")"
   [ $u -ne 0 ] && status=1
   if [ "$SKIP_NBVAL" != 1 ]; then
-    "${RUN[@]}" "$cfg" "$PY" -m pytest -q -p no:cacheprovider "${NBVAL[@]}" notebooks >"$log/nbval$i.txt" 2>&1
+    "${RUN[@]}" "$cfg" "$PY" -m pytest -q -p no:cacheprovider -n 2 --dist loadfile "${NBVAL[@]}" notebooks >"$log/nbval$i.txt" 2>&1
     v=$?
     line="$line | nbval: $(tail -n 1 "$log/nbval$i.txt")"
     [ $v -ne 0 ] && status=1
