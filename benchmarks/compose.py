@@ -324,7 +324,7 @@ def render(res) -> str:
              f"cores): absolute rates are depressed and noisy. Each row: the median of {res['repeats']} repeats after "
              "a compiling call, with the min–max range; the repeats of the rows compared are interleaved. A ratio is "
              "of the medians, with the range from the extremes (min/max to max/min); \"met\" only when the whole "
-             "range is above the target, \"missed\" when the whole range is below it, \"not resolved by the "
+             "range is at or above the target, \"missed\" when the whole range is below it, \"not resolved by the "
              "spread\" otherwise. The target of every ratio so marked is 1: kftrack at least as fast as the call it "
              "is compared with.")
     names = {"jit": "composed calls", "grad": "grad", "vmap": "vmap over q", "imm": "IMM under grad",
