@@ -155,6 +155,13 @@ def main(argv=None):
         stamp.load = os.getloadavg()[0]
     stamp.load = load0
 
+    def done(section, value, m, keys):  # the end of a section: store it, stamp it, save, report
+        res[section] = value
+        res["load_average_at_end"] = os.getloadavg()[0]
+        stamp(section)
+        save(res)
+        print(json.dumps({k: {kk: v.get(kk) for kk in keys} for k, v in m.items()}), flush=True)
+
     # ---- inside the caller's jit ---------------------------------------------------------------
     if want("jit"):
         jx_means = jax.jit(lambda z: kf(z).x)
@@ -171,12 +178,7 @@ def main(argv=None):
             x = np.swapaxes(np.asarray(x), 0, 1) if k.startswith("dyn") else np.asarray(x)
             m[k]["rel_diff"] = rel(x, ref)
             m[k].pop("out")
-        res["jit"] = m
-        res["load_average_at_end"] = os.getloadavg()[0]
-        stamp("jit")
-        save(res)
-        print(json.dumps({k: {kk: v[kk] for kk in ("median", "min", "max", "rel_diff")} for k, v in m.items()}),
-              flush=True)
+        done("jit", m, m, ("median", "min", "max", "rel_diff"))
 
     # ---- grad of the total log-likelihood wrt (log q, log r) ----------------------------------
     if want("grad"):
@@ -199,12 +201,7 @@ def main(argv=None):
         res["grad_value"] = [float(v) for v in np.asarray(m["kf_grad"]["out"])]
         for k in fns:
             m[k].pop("out")
-        res["grad"] = m
-        res["load_average_at_end"] = os.getloadavg()[0]
-        stamp("grad")
-        save(res)
-        print(json.dumps({k: {kk: v.get(kk) for kk in ("median", "min", "max", "rel_diff")} for k, v in m.items()}),
-              flush=True)
+        done("grad", m, m, ("median", "min", "max", "rel_diff"))
 
     # ---- vmap over 64 values of q against 64 direct calls --------------------------------------
     if want("vmap"):
@@ -224,12 +221,7 @@ def main(argv=None):
         m["vmap_q"]["bound"] = C_BOUND * TV * 4 * kq * EPS
         for k in fns:
             m[k].pop("out")
-        res["vmap"] = {"runs": RV, "steps": TV, "n_q": NQ, **m}
-        res["load_average_at_end"] = os.getloadavg()[0]
-        stamp("vmap")
-        save(res)
-        print(json.dumps({k: {kk: v.get(kk) for kk in ("median", "min", "max", "rel_diff")} for k, v in m.items()}),
-              flush=True)
+        done("vmap", {"runs": RV, "steps": TV, "n_q": NQ, **m}, m, ("median", "min", "max", "rel_diff"))
 
     # ---- the IMM under grad against its forward pass ------------------------------------------
     if want("imm"):
@@ -252,12 +244,7 @@ def main(argv=None):
         m = measure(fns, dict.fromkeys(fns, RI * TI), REPEATS)
         for k in fns:
             m[k].pop("out")
-        res["imm"] = {"runs": RI, "steps": TI, **m}
-        res["load_average_at_end"] = os.getloadavg()[0]
-        stamp("imm")
-        save(res)
-        print(json.dumps({k: {kk: v.get(kk) for kk in ("median", "min", "max", "compile_s")} for k, v in m.items()}),
-              flush=True)
+        done("imm", {"runs": RI, "steps": TI, **m}, m, ("median", "min", "max", "compile_s"))
 
     # ---- parallel in time against T, one run -------------------------------------------------
     if want("parallel"):
