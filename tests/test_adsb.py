@@ -3,10 +3,15 @@ the loader skips and counts bad rows by reason; the ENU conversion round-trips a
 distances right; bad arguments name themselves."""
 from __future__ import annotations
 
+import builtins
 import gzip
+import math
+import re
 import subprocess
 import sys
+import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -204,3 +209,161 @@ def test_enu_north_distance_equals_the_meridian_arc():
 def test_argument_errors_name_the_argument(call, arg):
     with pytest.raises((ValueError, TypeError), match=arg):
         call()
+
+
+# ---------------------------------------------------------------- the test-flight guard (issue 26)
+def _rows(fl, rows):
+    """The record ``fl`` cut to ``rows`` (a slice or index array) in every column."""
+    return fl._replace(**{k: getattr(fl, k)[rows] for k in adsb.COLUMNS})
+
+
+def _nameless(t, lat, lon):
+    """A record without a name, as a user may wrap arrays."""
+    return SimpleNamespace(t_s=np.asarray(t, float), lat_deg=np.asarray(lat, float),
+                           lon_deg=np.asarray(lon, float))
+
+
+@pytest.fixture(scope="module")
+def held_out():
+    return {n: adsb.load_flight(n) for n in adsb.TEST_FLIGHTS}
+
+
+def test_stored_test_flight_tracks_equal_the_files(held_out):
+    fresh, stored = adsb._test_flight_tracks(), adsb._TEST_FLIGHT_TRACKS
+    assert list(stored) == list(fresh) == list(adsb.TEST_FLIGHTS)
+    source = {}                                      # the regeneration's text gives the table back
+    exec(adsb._format_tracks(stored), source)
+    assert source["_TEST_FLIGHT_TRACKS"] == stored
+    for name, (t0, t1, tol, lat, lon) in stored.items():
+        f0, f1, ftol, flat, flon = fresh[name]
+        assert (t0, t1, len(lat), len(lon)) == (f0, f1, len(flat), len(flon)), name
+        # stored rounded to 0.001 deg and up to 0.1 km: round-off (~1e-13) can flip a tie by one unit, no more
+        np.testing.assert_allclose(lat, flat, rtol=0, atol=1e-3 + 1e-9, err_msg=name)
+        np.testing.assert_allclose(lon, flon, rtol=0, atol=1e-3 + 1e-9, err_msg=name)
+        assert abs(tol - ftol) <= 0.1 + 1e-9, name
+        # every row of the file lies in the stored span and within the stored tolerance of the stored
+        # track, less half the 1 km margin (kept for a flipped 0.001 deg, at most 0.12 km)
+        fl = held_out[name]
+        assert t0 <= fl.t_s.min() and fl.t_s.max() <= t1, name
+        d = adsb._track_distance_km(fl.t_s, fl.lat_deg, fl.lon_deg, adsb._track_times(t0, t1, len(lat)),
+                                    np.array(lat), np.array(lon))
+        assert d.max() <= tol - 0.5 * adsb._TRACK_MARGIN_KM, name
+
+
+def test_no_training_or_robustness_row_matches_a_test_flight():
+    # Not one row of the 12 other flights lies within a test flight's tolerance of its track at
+    # the same time, so no slice of them is refused; the nearest approach and the tolerances are
+    # the figures the docstring of refuse_test_flights states.
+    nearest = (math.inf, None, None)
+    for name in adsb.TRAINING_FLIGHTS + adsb.ROBUSTNESS_FLIGHTS:
+        fl = adsb.load_flight(name)
+        for test, t0, t1, tol, tt, la, lo in adsb._test_tracks():
+            span = (fl.t_s >= t0) & (fl.t_s <= t1)
+            if span.any():
+                d = adsb._track_distance_km(fl.t_s[span], fl.lat_deg[span], fl.lon_deg[span], tt, la, lo)
+                assert not np.any(d <= tol), (name, test, d.min(), tol)
+                nearest = min(nearest, (float(d.min()), name, test))
+        adsb.refuse_test_flights([fl, _rows(fl, slice(100, 200)), fl._replace(name="mine.csv")])
+    tols = [v[2] for v in adsb._TEST_FLIGHT_TRACKS.values()]
+    doc = " ".join(adsb.refuse_test_flights.__doc__.split())
+    assert nearest[1:] == ("gliders/alpi_italiane", "gliders/alto_adige")
+    assert f"stays {nearest[0]:.1f} km from the track of ``gliders/alto_adige``, whose :math:`\\delta` is " \
+           f"{adsb._TEST_FLIGHT_TRACKS['gliders/alto_adige'][2]:.1f} km" in doc
+    assert f"({min(tols):.1f} to {max(tols):.1f} km)" in doc
+    readme = " ".join((ROOT / "data" / "README.md").read_text(encoding="utf-8").split())
+    assert f"within its tolerance ({min(tols):.1f} to {max(tols):.1f} km)" in readme
+    assert f"every {adsb._TRACK_STEP_S:.0f} s" in readme and f"every {adsb._TRACK_STEP_S:.0f} s" in doc
+
+
+@pytest.mark.parametrize("name", adsb.TEST_FLIGHTS)
+def test_a_test_flight_is_refused_by_its_content(name, held_out):
+    fl = held_out[name]
+    K = fl.t_s.size
+    train = _rows(adsb.load_flight("calibration/toulouse"), slice(0, 300))
+    cases = {
+        "renamed": (fl._replace(name="renamed.csv"), "name 'renamed.csv'", K),
+        "first rows dropped": (fl._replace(name="mine", t_s=fl.t_s[10:], lat_deg=fl.lat_deg[10:],
+                                           lon_deg=fl.lon_deg[10:]), "name 'mine'", K - 10),
+        "100 rows at the start": (_rows(fl._replace(name="a"), slice(0, 100)), "name 'a'", 100),
+        "100 rows in the middle": (_rows(fl._replace(name="b"), slice(K // 2, K // 2 + 100)), "name 'b'", 100),
+        "100 rows at the end": (_rows(fl._replace(name="c"), slice(K - 100, K)), "name 'c'", 100),
+        "no name": (_nameless(fl.t_s, fl.lat_deg, fl.lon_deg), "no name", K),
+        "no name, rounded to 0.001 deg": (_nameless(fl.t_s, np.round(fl.lat_deg, 3), np.round(fl.lon_deg, 3)),
+                                          "no name", K),
+        "100 rows and 200 rows without a position": (
+            _nameless(np.r_[fl.t_s[:100], fl.t_s[:200]], np.r_[fl.lat_deg[:100], np.full(200, np.nan)],
+                      np.r_[fl.lon_deg[:100], np.full(200, np.nan)]), "no name", 100),
+    }
+    for case, (record, label, n) in cases.items():
+        expected = (rf"\(kftrack.adsb.TEST_FLIGHTS.*got train\[1\] \({label}: {n} of its {n} finite rows "
+                    rf"match {name}\)$")
+        try:
+            adsb.refuse_test_flights([train, record], argname="train")
+        except ValueError as exc:
+            assert re.search(expected, str(exc)), (case, str(exc))
+        else:
+            pytest.fail(f"{name}, {case}: not refused")
+    # by name too, as before (and without looking at the rows)
+    with pytest.raises(ValueError, match=rf"got flights\[0\] \({name}\)$"):
+        adsb.refuse_test_flights([_rows(fl, slice(0, 0))])
+
+
+def test_the_half_rule_and_flights_elsewhere():
+    fl = adsb.load_flight("gliders/luberon")
+    t, lat, lon = fl.t_s[:100], fl.lat_deg[:100], fl.lon_deg[:100]
+    far_t, far_lat, far_lon = t + 86400.0, lat, lon                  # the same rows one day later
+    # at least half of the finite rows: 50 of 100 refused, 49 of 98 refused, 49 of 99 passes
+    mixed = _nameless(np.r_[t[:50], far_t[50:]], lat, lon)
+    with pytest.raises(ValueError, match="no name: 50 of its 100 finite rows match gliders/luberon"):
+        adsb.refuse_test_flights([mixed])
+    with pytest.raises(ValueError, match="49 of its 98 finite rows"):
+        adsb.refuse_test_flights([_nameless(np.r_[t[:49], far_t[51:]], np.r_[lat[:49], lat[51:]],
+                                            np.r_[lon[:49], lon[51:]])])
+    adsb.refuse_test_flights([_nameless(np.r_[t[:49], far_t[50:]], np.r_[lat[:49], lat[50:]],
+                                        np.r_[lon[:49], lon[50:]])])
+    # elsewhere: the same times 1 deg (111 km) north; the same places a day later; a synthetic
+    # constant-velocity flight at 45 N 7 E, named or not; an empty record; a record without positions
+    adsb.refuse_test_flights([
+        fl._replace(name="north.csv", lat_deg=fl.lat_deg + 1.0),
+        _nameless(fl.t_s + 86400.0, fl.lat_deg, fl.lon_deg),
+        adsb.Flight("synthetic", np.arange(3000) * 5.0 + fl.t_s[0], 45.0 + np.arange(3000) * 1e-4,
+                    np.full(3000, 7.0), *(np.full(3000, np.nan),) * 4, {}),
+        _nameless(np.arange(3000) * 5.0, 45.0 + np.arange(3000) * 1e-4, np.full(3000, 7.0)),
+        _nameless([], [], []),
+        _nameless(fl.t_s, np.full(fl.t_s.size, np.nan), fl.lon_deg),
+    ])
+
+
+def test_the_guard_reads_no_file(held_out, monkeypatch):
+    # The stored tracks are all it needs: with every way of reading a flight file broken, and the
+    # table rebuilt from the constant, a renamed test flight is still refused.
+    record = held_out["gliders/sisteron"]._replace(name="mine.csv")
+
+    def no_read(*args, **kwargs):
+        raise AssertionError(f"the guard read a file: {args!r}")
+
+    adsb._test_tracks.cache_clear()
+    with monkeypatch.context() as m:
+        for obj, attr in ((adsb, "load_flight"), (adsb, "data_path"), (gzip, "open"), (builtins, "open")):
+            m.setattr(obj, attr, no_read)
+        with pytest.raises(ValueError, match="match gliders/sisteron"):
+            adsb.refuse_test_flights([record])
+
+
+def test_the_guard_is_fast(held_out):
+    # Budget: 10 ms for a 3000-row flight; best of 20 calls, so that other work on a shared
+    # machine does not count (one call takes about 0.5 ms on an idle core).
+    matched = held_out["calibration/perth"]._replace(name="mine.csv")      # 3101 rows: refused
+    passing = adsb.load_flight("calibration/munich")                            # 3060 rows: passes
+    for record, refused in ((matched, True), (passing, False)):
+        best = math.inf
+        for _ in range(20):
+            start = time.perf_counter()
+            try:
+                adsb.refuse_test_flights([record])
+            except ValueError:
+                assert refused
+            else:
+                assert not refused
+            best = min(best, time.perf_counter() - start)
+        assert best < 0.010, (record.name, best)

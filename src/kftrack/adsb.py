@@ -97,17 +97,162 @@ def category_of(name: str) -> str:
 
 
 def refuse_test_flights(flights, argname: str = "flights") -> None:
-    """Raise ValueError if any record of ``flights`` is a test flight (its ``name`` in ``TEST_FLIGHTS``).
+    """Raise ValueError if any record of ``flights`` is a test flight, by name or by content.
 
     Every tuning function of chapter 18 calls this at its boundary, so that nothing is fitted,
-    scanned or chosen on the flights the methods are judged on. Records without a ``name`` (arrays
-    wrapped by a user) pass.
+    scanned or chosen on the flights the methods are judged on. A record (anything with ``t_s``,
+    ``lat_deg``, ``lon_deg`` arrays of shape ``(K,)``, a ``name`` optional) is a test flight if
+
+    - its ``name`` is in :data:`TEST_FLIGHTS`, or
+    - at least half of its finite rows (``t_s``, ``lat_deg``, ``lon_deg`` all finite) match one
+      test flight: a row matches if its time lies in that flight's span :math:`[t_0, t_1]` and its
+      position lies within that flight's tolerance :math:`\\delta` of its stored track
+      :math:`(\\hat\\varphi(t), \\hat\\lambda(t))` at the same time,
+      :math:`R\\sqrt{(\\varphi - \\hat\\varphi)^2 + \\cos^2\\varphi\\,(\\lambda - \\hat\\lambda)^2} \\le \\delta`
+      (radians, :math:`R` = 6371 km).
+
+    The stored tracks (``_TEST_FLIGHT_TRACKS``, no file is read: tuning code never opens a test
+    flight) hold each test flight's position every 600 s, linearly interpolated in time;
+    :math:`\\delta` is the largest distance of that flight's own rows from its track plus 1 km
+    (6.5 to 38.6 km). So a test flight renamed, sliced or copied into a record without a name
+    is refused (all its rows match), while no row of a training or robustness flight matches any
+    (the nearest, ``gliders/alpi_italiane``, stays 18.5 km from the track of ``gliders/alto_adige``,
+    whose :math:`\\delta` is 9.4 km; ``tests/test_adsb.py`` checks both). A record whose rows mostly
+    lie elsewhere in space or time, named or not, passes; so does one in which a test flight's rows
+    are fewer than half (e.g. appended to a longer flight). Cost: a few vector operations per test
+    flight (under 10 ms for 3000 rows).
+
+    Parameters
+    ----------
+    flights : iterable of records (:class:`Flight` or alike)
+        The flights a tuning function was given; records without the three columns are left to
+        the caller's own validation.
+    argname : str
+        The argument's name, for the message.
+
+    Raises
+    ------
+    ValueError
+        Naming ``argname[i]`` of every refused record and the test flight it is (or matches).
+
+    Examples
+    --------
+    >>> from kftrack.adsb import COLUMNS, load_flight, refuse_test_flights
+    >>> fl = load_flight("gliders/luberon")                                   # a test flight
+    >>> mine = fl._replace(name="mine.csv", **{k: getattr(fl, k)[500:600] for k in COLUMNS})
+    >>> refuse_test_flights([load_flight("gliders/cevennes"), mine], argname="train")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ValueError: train must not hold test flights ..., got train[1] (name 'mine.csv': 100 of its 100
+    finite rows match gliders/luberon)
     """
-    bad = [str(getattr(fl, "name", None)) for fl in flights
-           if isinstance(getattr(fl, "name", None), str) and fl.name in TEST_FLIGHTS]
+    bad = []
+    for i, fl in enumerate(flights):
+        name = getattr(fl, "name", None)
+        if isinstance(name, str) and name in TEST_FLIGHTS:
+            bad.append(f"{argname}[{i}] ({name})")
+            continue
+        match = _matched_test_flight(fl)
+        if match is not None:
+            test, k, n = match
+            label = f"name {name!r}" if isinstance(name, str) else "no name"
+            bad.append(f"{argname}[{i}] ({label}: {k} of its {n} finite rows match {test})")
     if bad:
         raise ValueError(f"{argname} must not hold test flights (kftrack.adsb.TEST_FLIGHTS: nothing is tuned on "
-                         f"them), got {', '.join(bad)}")
+                         f"them; a record is one if its name is a test flight's, or if at least half of its "
+                         f"finite rows lie in a test flight's time span and within its tolerance of that "
+                         f"flight's stored track), got {', '.join(bad)}")
+
+
+#: Seconds between the stored points of a test flight's track (``_TEST_FLIGHT_TRACKS``).
+_TRACK_STEP_S = 600.0
+#: km added to the largest distance of a test flight's own rows from its stored track: a copy of
+#: the flight rounded to 0.001 deg (0.1 km) or coarser still matches.
+_TRACK_MARGIN_KM = 1.0
+_KM_PER_DEG = 6371.0 * math.pi / 180.0   # km per degree of arc on the mean sphere (R = 6371 km)
+
+
+def _track_times(t0: float, t1: float, n: int) -> np.ndarray:
+    """The ``n`` times of a stored track: ``t0 + k * _TRACK_STEP_S``, the last one ``t1``."""
+    return np.minimum(t0 + _TRACK_STEP_S * np.arange(n), t1)
+
+
+def _track_distance_km(t, lat, lon, track_t, track_lat, track_lon) -> np.ndarray:
+    """Distance (km, equirectangular) of the rows ``(t, lat, lon)`` (K,) from the track linearly
+    interpolated at their times."""
+    plat, plon = np.interp(t, track_t, track_lat), np.interp(t, track_t, track_lon)
+    dlon = (lon - plon + 180.0) % 360.0 - 180.0
+    return _KM_PER_DEG * np.hypot(lat - plat, dlon * np.cos(np.radians(lat)))
+
+
+def _test_flight_tracks() -> dict[str, tuple]:
+    """``{name: (t0, t1, tol_km, lat, lon)}`` of every test flight, computed from its file.
+
+    ``t0``, ``t1``: the first and last time (s, floor and ceiling); ``lat``, ``lon``: the flight's
+    position (deg, rounded to 0.001) at :func:`_track_times`, interpolated in time between its rows
+    sorted by time; ``tol_km``: the largest distance of its rows from that track plus
+    ``_TRACK_MARGIN_KM``, rounded up to 0.1 km. Only ``tests/test_adsb.py`` and the regeneration of
+    ``_TEST_FLIGHT_TRACKS`` (``print(_format_tracks(_test_flight_tracks()))``, pasted at the end of
+    this module) call it: tuning code never reads a test flight.
+    """
+    out = {}
+    for name in TEST_FLIGHTS:
+        fl = load_flight(name)
+        order = np.argsort(fl.t_s, kind="stable")
+        t, lat, lon = fl.t_s[order], fl.lat_deg[order], fl.lon_deg[order]
+        t0, t1 = math.floor(t[0]), math.ceil(t[-1])
+        grid = _track_times(t0, t1, math.ceil((t1 - t0) / _TRACK_STEP_S) + 1)
+        glat, glon = np.round(np.interp(grid, t, lat), 3), np.round(np.interp(grid, t, lon), 3)
+        dev = float(np.max(_track_distance_km(t, lat, lon, grid, glat, glon)))
+        out[name] = (t0, t1, math.ceil(10.0 * (dev + _TRACK_MARGIN_KM)) / 10.0, tuple(glat.tolist()),
+                     tuple(glon.tolist()))
+    return out
+
+
+def _format_tracks(table: dict[str, tuple]) -> str:
+    """The Python source of ``_TEST_FLIGHT_TRACKS = table`` (lines of at most 110 characters)."""
+    import textwrap
+
+    def numbers(values, end: str) -> str:
+        return "\n".join(textwrap.wrap("(" + ", ".join(repr(v) for v in values) + end, 110,
+                                        initial_indent=" " * 8, subsequent_indent=" " * 9, break_on_hyphens=False))
+
+    lines = ["_TEST_FLIGHT_TRACKS: dict[str, tuple] = {"]
+    for name, (t0, t1, tol, lat, lon) in table.items():
+        lines += [f"    {name!r}: ({t0!r}, {t1!r}, {tol!r},", numbers(lat, "),"), numbers(lon, ")),")]
+    return "\n".join(lines + ["}"])
+
+
+@lru_cache(maxsize=1)
+def _test_tracks() -> tuple[tuple, ...]:
+    """``_TEST_FLIGHT_TRACKS`` as arrays: ``(name, t0, t1, tol_km, times, lat, lon)`` per flight."""
+    return tuple((name, float(t0), float(t1), float(tol), _track_times(t0, t1, len(lat)), np.array(lat),
+                  np.array(lon)) for name, (t0, t1, tol, lat, lon) in _TEST_FLIGHT_TRACKS.items())
+
+
+def _matched_test_flight(fl) -> tuple[str, int, int] | None:
+    """``(test flight, matching rows, finite rows)`` for the test flight the most finite rows of
+    ``fl`` match, if at least half do (rule of :func:`refuse_test_flights`); else None."""
+    try:
+        t, lat, lon = (np.asarray(getattr(fl, a), dtype=float) for a in ("t_s", "lat_deg", "lon_deg"))
+    except (AttributeError, TypeError, ValueError):
+        return None
+    if t.ndim != 1 or lat.shape != t.shape or lon.shape != t.shape:
+        return None
+    finite = np.isfinite(t) & np.isfinite(lat) & np.isfinite(lon)
+    n = int(np.count_nonzero(finite))
+    if n == 0:
+        return None
+    t, lat, lon = t[finite], lat[finite], lon[finite]
+    best = None
+    for name, t0, t1, tol, track_t, track_lat, track_lon in _test_tracks():
+        span = (t >= t0) & (t <= t1)
+        if 2 * int(np.count_nonzero(span)) < n:
+            continue
+        d = _track_distance_km(t[span], lat[span], lon[span], track_t, track_lat, track_lon)
+        k = int(np.count_nonzero(d <= tol))
+        if 2 * k >= n and (best is None or k > best[1]):
+            best = (name, k, n)
+    return best
 
 
 class Flight(NamedTuple):
@@ -773,3 +918,166 @@ def load_traffic(path: str | os.PathLike | None = None) -> TrafficWindow:
         xy = v = np.zeros((0, 2))
     return TrafficWindow(ids, [calls[k] for k in ids], aircraft, table[:, 0] - window[0], xy, v,
                          t1=window[1] - window[0], start_unix=window[0], site=RADAR_SITE, skipped=skipped)
+
+
+# The stored tracks of the test flights (rule: refuse_test_flights), {name: (t0 s, t1 s, tolerance km,
+# lat deg, lon deg)}: written by print(_format_tracks(_test_flight_tracks())), checked against the
+# files by tests/test_adsb.py.
+_TEST_FLIGHT_TRACKS: dict[str, tuple] = {
+    'calibration/ajaccio': (1515748470, 1515761610, 32.4,
+        (41.891, 41.843, 41.815, 41.569, 41.51, 42.003, 41.711, 41.896, 41.811, 41.331, 41.665, 42.23, 42.862,
+         43.108, 42.855, 42.32, 41.809, 41.293, 41.604, 41.625, 41.387, 41.695, 41.922),
+        (8.78, 8.786, 8.7, 9.006, 8.535, 8.501, 8.687, 8.28, 8.712, 8.97, 8.821, 8.826, 8.897, 8.296, 7.965,
+         8.368, 8.746, 8.713, 8.589, 8.397, 7.968, 8.63, 8.795)),
+    'calibration/bornholm': (1543225095, 1543237950, 17.2,
+        (55.061, 55.042, 54.974, 55.054, 54.906, 55.099, 54.818, 54.993, 54.979, 55.054, 55.007, 54.973,
+         55.059, 55.039, 55.022, 55.013, 55.004, 55.017, 55.038, 55.03, 55.04, 54.995, 55.059),
+        (14.767, 14.84, 14.989, 14.913, 14.863, 15.242, 15.246, 15.249, 14.88, 14.767, 14.831, 14.973, 14.923,
+         14.855, 14.921, 14.953, 14.96, 14.811, 14.858, 14.77, 14.851, 14.946, 14.778)),
+    'calibration/brussels_ils': (1544274475, 1544283995, 21.9,
+        (50.909, 51.051, 50.983, 50.88, 51.069, 51.019, 50.968, 51.114, 51.062, 50.951, 50.976, 51.008,
+         51.016, 51.061, 51.023, 50.994, 50.898),
+        (4.491, 4.549, 4.411, 4.654, 4.575, 4.546, 4.525, 4.696, 4.5, 4.518, 4.528, 4.541, 4.545, 4.564,
+         4.547, 4.535, 4.47)),
+    'calibration/brussels_vor': (1544260265, 1544267725, 15.1,
+        (50.908, 50.999, 50.584, 50.852, 51.199, 51.171, 50.802, 50.708, 51.11, 51.046, 50.653, 50.976,
+         50.901, 50.897),
+        (4.488, 4.028, 4.396, 5.061, 4.772, 4.232, 4.031, 4.789, 4.764, 4.22, 4.493, 4.887, 4.493, 4.469)),
+    'calibration/cardiff': (1550222725, 1550232975, 22.1,
+        (51.394, 51.54, 51.529, 51.403, 51.416, 51.521, 51.414, 51.381, 51.43, 51.384, 51.375, 51.346, 51.372,
+         51.301, 51.359, 51.322, 51.406, 51.394, 51.394),
+        (-3.335, -3.391, -3.616, -3.542, -3.561, -3.625, -3.463, -3.336, -3.449, -3.203, -3.275, -3.087,
+         -3.266, -3.317, -3.084, -3.29, -3.38, -3.345, -3.346)),
+    'calibration/funchal': (1542966250, 1542980025, 23.9,
+        (32.696, 32.811, 32.789, 32.647, 32.907, 32.581, 32.88, 32.678, 32.748, 32.835, 32.612, 32.914,
+         32.595, 32.854, 32.553, 32.415, 32.588, 32.973, 32.934, 32.762, 32.646, 32.888, 32.689, 32.693),
+        (-16.776, -16.523, -16.897, -16.547, -16.761, -16.732, -16.587, -16.886, -16.507, -16.874, -16.591,
+         -16.712, -16.787, -16.554, -16.818, -16.882, -16.807, -16.562, -16.594, -16.654, -16.802, -16.595,
+         -16.785, -16.781)),
+    'calibration/guatemala': (1522081475, 1522090745, 29.7,
+        (14.591, 15.054, 15.043, 15.077, 15.013, 14.968, 15.145, 14.755, 14.994, 15.38, 14.973, 15.055,
+         14.921, 15.115, 15.038, 14.542, 14.594),
+        (-90.525, -90.356, -90.413, -90.202, -90.512, -90.479, -90.19, -90.406, -90.488, -90.443, -90.642,
+         -90.309, -90.613, -90.338, -90.461, -90.574, -90.526)),
+    'calibration/kingston': (1530033130, 1530040400, 20.9,
+        (17.935, 18.164, 17.908, 17.954, 17.91, 17.973, 18.032, 18.091, 18.097, 17.864, 18.025, 18.02, 17.935,
+         17.936),
+        (-76.786, -76.937, -76.848, -77.082, -77.132, -76.874, -76.92, -76.888, -76.848, -77.033, -76.992,
+         -76.983, -76.779, -76.778)),
+    'calibration/kiruna': (1548836125, 1548844575, 25.1,
+        (67.831, 67.907, 67.905, 67.929, 67.973, 68.0, 68.033, 67.922, 67.956, 67.974, 68.079, 68.149, 67.955,
+         67.789, 67.824, 67.825),
+        (20.352, 20.487, 20.39, 20.623, 20.709, 20.716, 20.441, 20.628, 20.571, 21.116, 22.17, 21.233, 21.578,
+         20.324, 20.337, 20.333)),
+    'calibration/kota_kinabalu': (1488936615, 1488941205, 33.6,
+        (5.94, 5.997, 6.074, 5.986, 6.154, 6.225, 6.171, 6.219, 5.941),
+        (116.052, 115.767, 116.023, 115.875, 115.948, 116.075, 116.146, 116.144, 116.053)),
+    'calibration/liege_sprimont': (1556352555, 1556364575, 20.1,
+        (50.896, 50.909, 50.828, 50.747, 50.604, 50.344, 50.728, 50.628, 50.338, 50.706, 50.552, 50.278,
+         50.655, 50.649, 50.276, 50.554, 50.628, 50.45, 50.847, 50.646, 50.671, 50.664),
+        (4.468, 4.498, 4.511, 5.411, 6.105, 5.655, 5.388, 6.099, 5.698, 5.363, 6.013, 5.511, 5.302, 5.951,
+         5.707, 5.238, 5.849, 5.302, 5.234, 5.86, 5.497, 5.486)),
+    'calibration/london_gatwick': (1551313690, 1551324965, 20.9,
+        (51.15, 51.106, 51.217, 51.149, 51.116, 51.243, 51.226, 51.131, 51.209, 51.165, 51.152, 51.121,
+         51.095, 51.192, 51.131, 51.084, 51.135, 51.123, 51.142, 51.153),
+        (-0.177, -0.091, 0.083, 0.003, -0.232, -0.064, 0.389, -0.149, 0.069, -0.071, -0.017, -0.233, -0.187,
+         -0.309, -0.205, -0.212, -0.516, -0.136, -0.163, -0.195)),
+    'calibration/monastir': (1542794990, 1542805395, 20.2,
+        (35.754, 35.727, 35.682, 35.722, 35.706, 35.742, 35.785, 35.746, 35.779, 35.741, 35.739, 35.704,
+         35.726, 35.746, 35.879, 35.521, 35.685, 35.738, 35.759),
+        (10.736, 10.649, 10.618, 10.593, 10.567, 10.686, 10.689, 10.706, 10.851, 10.682, 10.706, 10.636,
+         10.622, 10.654, 10.485, 10.524, 10.297, 10.672, 10.754)),
+    'calibration/montreal': (1544540290, 1544549995, 29.3,
+        (45.471, 45.701, 45.665, 45.664, 45.451, 45.671, 45.647, 45.621, 45.675, 45.677, 45.707, 45.876,
+         45.844, 45.799, 45.758, 45.388, 45.471, 45.47),
+        (-73.723, -73.206, -73.283, -73.273, -73.832, -74.067, -74.115, -74.217, -74.13, -74.235, -74.094,
+         -73.763, -73.844, -73.918, -73.818, -74.056, -73.721, -73.72)),
+    'calibration/nice': (1576068400, 1576080850, 23.8,
+        (43.656, 43.554, 43.55, 43.537, 43.496, 43.595, 43.607, 43.655, 43.564, 43.533, 43.533, 43.656,
+         43.607, 43.529, 43.395, 43.544, 43.47, 43.512, 43.497, 43.619, 43.65, 43.656),
+        (7.206, 7.191, 7.008, 7.118, 7.126, 7.228, 7.272, 7.25, 7.183, 7.101, 7.078, 7.214, 7.217, 7.147,
+         7.188, 6.791, 6.976, 7.187, 7.165, 7.234, 7.243, 7.206)),
+    'calibration/noumea': (1509844535, 1509850410, 23.3,
+        (-22.039, -22.276, -22.249, -22.249, -22.317, -22.419, -22.326, -22.135, -22.125, -22.134, -21.955),
+        (166.22, 166.422, 166.484, 166.485, 166.502, 166.53, 166.466, 166.562, 166.627, 166.324, 166.13)),
+    'calibration/perth': (1548188465, 1548203965, 26.1,
+        (-31.942, -31.865, -31.821, -32.039, -32.089, -31.671, -31.27, -31.456, -31.985, -31.602, -31.586,
+         -31.74, -31.646, -31.535, -31.56, -31.7, -31.428, -31.701, -31.748, -31.677, -31.556, -31.531,
+         -31.576, -31.706, -31.709, -31.899, -31.931),
+        (115.965, 115.98, 115.989, 115.675, 116.072, 116.507, 116.141, 115.602, 115.692, 115.996, 115.994,
+         115.986, 116.044, 116.135, 115.894, 116.021, 115.988, 115.845, 115.849, 115.92, 116.13, 116.142,
+         116.046, 115.962, 115.887, 116.041, 115.96)),
+    'calibration/sydney': (1541810960, 1541825690, 22.6,
+        (-33.965, -33.809, -33.763, -33.828, -33.817, -33.897, -33.907, -33.935, -33.855, -33.681, -33.846,
+         -33.917, -33.945, -33.814, -33.82, -33.812, -33.923, -33.755, -33.921, -33.926, -33.942, -33.863,
+         -33.669, -33.938, -33.946, -33.946),
+        (151.192, 151.152, 151.239, 151.162, 151.175, 151.175, 151.177, 151.185, 151.161, 151.279, 151.162,
+         151.181, 151.264, 151.232, 151.315, 151.278, 151.063, 151.314, 151.181, 151.182, 151.186, 151.166,
+         151.232, 151.264, 151.187, 151.187)),
+    'calibration/vancouver': (1538840575, 1538849965, 38.6,
+        (49.929, 49.732, 49.453, 49.165, 49.176, 49.18, 49.155, 49.203, 49.183, 49.173, 49.163, 49.142,
+         49.266, 49.274, 49.5, 49.773, 49.966),
+        (-119.374, -120.48, -122.089, -122.984, -123.087, -123.108, -122.948, -123.326, -123.231, -123.354,
+         -123.193, -121.976, -120.233, -118.633, -118.347, -119.415, -119.379)),
+    'calibration/vienna': (1542756885, 1542770570, 24.9,
+        (48.109, 48.129, 48.13, 48.072, 48.074, 48.099, 48.057, 48.077, 48.096, 48.198, 48.009, 47.99, 48.111,
+         48.089, 48.031, 48.098, 48.099, 48.052, 47.983, 48.027, 48.041, 47.958, 48.151, 48.111),
+        (16.575, 16.505, 16.512, 16.596, 16.684, 16.608, 16.618, 16.673, 16.53, 16.744, 16.712, 16.677,
+         16.568, 16.542, 16.715, 16.609, 16.506, 16.885, 16.836, 17.056, 16.684, 16.82, 16.707, 16.58)),
+    'gliders/alto_adige': (1558600726, 1558631793, 9.4,
+        (46.017, 46.087, 46.137, 46.146, 46.154, 46.209, 46.302, 46.39, 46.476, 46.606, 46.705, 46.781, 46.77,
+         46.721, 46.697, 46.664, 46.656, 46.64, 46.588, 46.647, 46.681, 46.696, 46.713, 46.714, 46.737,
+         46.748, 46.801, 46.844, 46.87, 46.762, 46.69, 46.629, 46.539, 46.552, 46.579, 46.622, 46.595, 46.638,
+         46.681, 46.687, 46.622, 46.611, 46.456, 46.29, 46.069, 45.892, 45.816, 45.888, 46.052, 46.107,
+         46.157, 45.999, 46.018),
+        (11.125, 11.245, 11.305, 11.354, 11.376, 11.451, 11.565, 11.627, 11.818, 11.942, 12.033, 12.249,
+         12.497, 12.644, 12.894, 13.147, 13.409, 13.553, 13.709, 13.511, 13.291, 13.171, 12.954, 12.815,
+         12.546, 12.305, 12.13, 11.827, 11.697, 11.654, 11.538, 11.361, 11.111, 11.137, 11.186, 11.314,
+         11.597, 11.759, 12.061, 12.134, 11.92, 11.764, 11.557, 11.437, 11.287, 11.186, 11.131, 11.2, 11.297,
+         11.351, 11.355, 11.302, 11.123)),
+    'gliders/danube_valley': (1558601548, 1558631334, 7.1,
+        (49.794, 49.837, 49.812, 49.755, 49.594, 49.483, 49.497, 49.377, 49.259, 49.139, 49.03, 48.971,
+         48.923, 48.815, 48.827, 48.838, 48.823, 48.77, 48.726, 48.715, 48.655, 48.731, 48.728, 48.762,
+         48.815, 48.874, 48.862, 48.889, 48.92, 49.021, 49.03, 49.07, 49.019, 48.917, 48.885, 48.955, 49.06,
+         49.174, 49.246, 49.289, 49.392, 49.469, 49.537, 49.558, 49.583, 49.604, 49.712, 49.684, 49.755,
+         49.794, 49.792),
+        (11.136, 11.218, 11.394, 11.511, 11.587, 11.76, 12.007, 12.17, 12.226, 12.294, 12.117, 11.957, 11.776,
+         11.527, 11.366, 11.217, 10.932, 10.664, 10.439, 10.239, 9.952, 9.96, 10.204, 10.549, 10.831, 11.079,
+         11.39, 11.53, 11.769, 12.032, 12.118, 12.429, 12.602, 12.868, 12.933, 12.83, 12.745, 12.579, 12.349,
+         12.217, 12.092, 12.024, 11.987, 11.898, 11.803, 11.654, 11.474, 11.517, 11.277, 11.137, 11.128)),
+    'gliders/franconia': (1558605772, 1558632799, 7.8,
+        (49.794, 49.801, 49.773, 49.785, 49.812, 49.831, 49.854, 49.891, 49.916, 49.891, 49.815, 49.699,
+         49.601, 49.562, 49.604, 49.649, 49.716, 49.748, 49.799, 49.813, 49.906, 49.945, 49.989, 49.97, 50.03,
+         50.133, 50.188, 50.183, 50.204, 50.339, 50.278, 50.237, 50.141, 50.062, 49.916, 49.854, 49.808,
+         49.847, 49.838, 49.759, 49.783, 49.807, 49.807, 49.799, 49.787, 49.794, 49.793),
+        (11.137, 11.229, 11.348, 11.544, 11.694, 11.923, 12.073, 12.304, 12.477, 12.737, 12.815, 12.926,
+         13.045, 13.018, 12.913, 12.725, 12.595, 12.48, 12.29, 12.197, 12.047, 11.843, 11.705, 11.567, 11.421,
+         11.345, 11.186, 11.042, 10.955, 10.937, 10.894, 11.005, 11.024, 11.112, 11.244, 11.233, 11.077,
+         10.942, 10.801, 10.694, 10.773, 10.994, 11.045, 11.184, 11.263, 11.133, 11.13)),
+    'gliders/luberon': (1558607668, 1558633957, 6.5,
+        (43.769, 43.755, 43.742, 43.759, 43.819, 43.806, 43.815, 43.836, 43.892, 43.934, 43.95, 44.024,
+         44.036, 44.046, 44.047, 44.033, 44.061, 44.108, 44.094, 44.063, 44.073, 44.089, 44.135, 44.1, 44.076,
+         44.068, 44.114, 44.094, 44.047, 44.028, 43.993, 43.932, 43.866, 43.775, 43.729, 43.736, 43.735,
+         43.735, 43.748, 43.81, 43.849, 43.809, 43.766, 43.766, 43.766),
+        (4.894, 4.916, 4.948, 5.051, 5.149, 5.332, 5.495, 5.608, 5.832, 5.998, 6.077, 6.11, 6.193, 6.222,
+         6.173, 6.14, 6.057, 5.968, 6.004, 6.035, 6.048, 6.008, 5.95, 5.979, 5.994, 6.036, 5.978, 5.987,
+         6.031, 6.019, 5.996, 5.956, 5.863, 5.793, 5.774, 5.785, 5.786, 5.787, 5.761, 5.512, 5.188, 4.963,
+         4.894, 4.893, 4.893)),
+    'gliders/oxford_cambridge': (1558609291, 1558633826, 8.1,
+        (51.87, 51.97, 52.061, 52.157, 52.311, 52.401, 52.485, 52.583, 52.693, 52.799, 52.782, 52.747, 52.72,
+         52.659, 52.525, 52.442, 52.374, 52.386, 52.354, 52.308, 52.217, 52.099, 52.066, 52.05, 51.913,
+         51.817, 51.755, 51.651, 51.589, 51.501, 51.462, 51.456, 51.496, 51.515, 51.613, 51.77, 51.783,
+         51.797, 51.926, 51.873, 51.868, 51.87),
+        (-0.542, -0.624, -0.487, -0.323, -0.026, 0.186, 0.348, 0.459, 0.668, 0.757, 0.73, 0.681, 0.549, 0.385,
+         0.22, 0.031, -0.17, -0.18, -0.363, -0.493, -0.632, -0.752, -0.751, -0.795, -1.025, -1.179, -1.248,
+         -1.437, -1.498, -1.712, -1.836, -1.782, -1.686, -1.491, -1.275, -1.208, -1.173, -1.139, -0.846,
+         -0.549, -0.547, -0.547)),
+    'gliders/sisteron': (1558609124, 1558632076, 12.1,
+        (44.283, 44.244, 44.27, 44.269, 44.358, 44.38, 44.386, 44.433, 44.526, 44.612, 44.599, 44.609, 44.612,
+         44.695, 44.721, 44.671, 44.634, 44.643, 44.706, 44.601, 44.477, 44.422, 44.375, 44.272, 44.19,
+         44.118, 44.137, 44.145, 44.234, 44.364, 44.233, 44.283, 44.283, 44.284, 44.284, 44.284, 44.284,
+         44.284, 44.284, 44.284),
+        (5.93, 6.048, 6.089, 6.146, 6.101, 6.038, 5.947, 5.846, 5.912, 5.904, 5.821, 5.763, 5.713, 5.629,
+         5.55, 5.687, 5.812, 5.99, 5.965, 5.844, 5.651, 5.522, 5.687, 5.783, 5.868, 5.903, 5.712, 5.84, 5.848,
+         5.931, 5.928, 5.929, 5.929, 5.93, 5.93, 5.931, 5.931, 5.932, 5.932, 5.932)),
+}
