@@ -29,7 +29,7 @@ import pytest
 
 from kftrack.kalman import kalman_filter, rts_smoother
 from kftrack.models import ConstantVelocity
-from kftrack.parallel import parallel_filter, parallel_smoother
+from kftrack.parallel import parallel_filter, parallel_smoother, prefix_scan
 
 jax.config.update("jax_enable_x64", True)  # the engines' float64 default needs it
 
@@ -132,3 +132,21 @@ def test_parallel_smoother_needs_priors_and_bad_input_names_the_argument():
     res = kalman_filter(zs, X0, P0, F, Q, H, R, priors=False)
     with pytest.raises(ValueError, match="priors"):
         parallel_smoother(res, F)
+
+
+@pytest.mark.parametrize("T", [1, 3, 17, 100, 1000])
+def test_prefix_scan_is_the_sequential_fold(T):
+    """Blocks of ceil(log2 T) steps, the last padded, then the block totals: every prefix exactly the
+    sequential fold, for an associative, non-commutative operation in exact integer arithmetic
+    (affine maps x -> a x + b mod p composed), at lengths that fill the blocks and lengths that do not."""
+    p = 10007
+    rng = np.random.default_rng(T)
+    a, b = rng.integers(1, p, T), rng.integers(0, p, T)
+    op = lambda f, g: ((g[0] * f[0]) % p, (g[0] * f[1] + g[1]) % p)  # noqa: E731  f first, then g
+    got = prefix_scan(op, (jnp.asarray(a), jnp.asarray(b)), (jnp.asarray(1), jnp.asarray(0)))
+    ref, acc = [], (1, 0)
+    for k in range(T):
+        acc = op(acc, (int(a[k]), int(b[k])))
+        ref.append(acc)
+    assert np.array_equal(np.asarray(got[0]), [r[0] for r in ref])
+    assert np.array_equal(np.asarray(got[1]), [r[1] for r in ref])

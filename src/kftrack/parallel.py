@@ -2,11 +2,11 @@ r"""The linear Kalman filter and RTS smoother parallel in time: associative scan
 
 Särkkä & García-Fernández (2021), "Temporal parallelization of Bayesian smoothers", IEEE TAC 66(1):
 the filter and the smoother are written as prefix (suffix) products of one element per step
-under an associative operation, evaluated by :func:`prefix_scan` in :math:`\lceil \log_2 T \rceil`
-rounds (span :math:`O(\log T)`, work :math:`T \lceil \log_2 T \rceil` combinations). On a GPU the
-span is what counts; on a CPU of a few cores the work does, and the parallel form does many times
-the arithmetic of the sequential recursion (two ``n x n`` solves and some ten matrix products per
-combination): it loses there (``benchmarks/compose.py`` measures by how much).
+under an associative operation, evaluated by :func:`prefix_scan` (span :math:`O(\log T)` rounds,
+work :math:`O(T)`: under :math:`3T` combinations for :math:`T \le 10^4`). On a GPU the span is what
+counts; on a CPU of a few cores the work does, and a combination (two ``n x n`` solves and some
+ten matrix products) costs more than a step of the sequential recursion: the parallel form loses
+there (``benchmarks/compose.py`` measures by how much).
 
 **Built from the kernels** (:mod:`kftrack.kernels`), with the step convention of
 :func:`kftrack.kalman.kalman_filter` (at step ``k`` update with ``zs[k]``, then predict with
@@ -169,18 +169,60 @@ def combine_smoother(later, earlier):
 def prefix_scan(op, elems, identity):
     r"""Inclusive prefix products ``out[k] = elems[0] op elems[1] op ... op elems[k]`` along the leading
     (time) axis of the pytree ``elems``, for an associative ``op(earlier, later)`` with two-sided
-    ``identity`` (a pytree of one element, broadcasting to an element): Hillis & Steele (1986),
-    :math:`\lceil \log_2 T \rceil` rounds, round ``d`` combining every ``out[k]`` with
-    ``out[k - 2^d]``, as one ``jax.lax.fori_loop``. Span :math:`O(\log T)`, work
-    :math:`T \lceil \log_2 T \rceil` combinations, and ``op`` traced once, so the compile time
-    does not grow with ``T`` (``jax.lax.associative_scan``, the work-efficient form with about
-    :math:`2T` combinations, traces ``op`` twice per level: on the shared two-core CPU of the book,
-    under load, the filter took more than two minutes to compile at ``T = 10^3``). Every entry is
-    combined in every round; the entries before ``2^d`` with the identity, selected away."""
+    ``identity`` (a pytree of one element, broadcasting to an element).
+
+    Work-efficient with logarithmic span (Brent's blocking): the ``T`` steps are cut into
+    :math:`\lceil T/L \rceil` blocks of :math:`L = \lceil \log_2 T \rceil` steps (the last padded with
+    ``identity``); (1) the prefixes inside every block, all blocks at once, one step of the block
+    after another (``jax.lax.scan``, :math:`L - 1` rounds); (2) the prefixes of the block totals,
+    Hillis & Steele (1986) (:func:`_doubling_scan`, :math:`\lceil \log_2 (T/L) \rceil` rounds);
+    (3) each block's prefixes combined with the total of the blocks before it (one round). Span
+    :math:`L + \lceil \log_2 (T/L) \rceil` rounds, :math:`O(\log T)`; work about
+    :math:`2T + (T/L) \lceil \log_2 (T/L) \rceil` combinations, :math:`O(T)` (26 455 at
+    :math:`T = 10^4`), where the doubling scan alone does :math:`T \lceil \log_2 T \rceil`
+    (140 000). ``op`` is traced three times whatever ``T``, so the compile time does not grow
+    with ``T`` (``jax.lax.associative_scan``, with about :math:`2T` combinations too, traces ``op``
+    twice per level: on the shared two-core CPU of the book, under load, the filter took more than
+    two minutes to compile at ``T = 10^3``)."""
     jax = _jax()
     jnp, tree = jax.numpy, jax.tree_util
     T = tree.tree_leaves(elems)[0].shape[0]
-    rounds = max(1, int(np.ceil(np.log2(max(T, 1)))))
+    if T < 2:
+        return elems
+    L = max(2, int(np.ceil(np.log2(T))))
+    nb = -(-T // L)
+    fit = lambda ref, a: jnp.broadcast_to(a, ref.shape)  # noqa: E731  op's result to its operand's shape
+
+    def blocks(a, e):  # (T, ...) -> (L, nb, ...): step i of every block, the padding the identity
+        a = jnp.concatenate([a, jnp.broadcast_to(e, (nb * L - T,) + a.shape[1:])])
+        return jnp.swapaxes(jnp.reshape(a, (nb, L) + a.shape[1:]), 0, 1)
+
+    x = tree.tree_map(blocks, elems, identity)
+    first = tree.tree_map(lambda a: a[0], x)
+
+    def step(carry, xi):
+        y = tree.tree_map(fit, xi, op(carry, xi))
+        return y, y
+
+    total, rest = jax.lax.scan(step, first, tree.tree_map(lambda a: a[1:], x))  # (1)
+    inner = tree.tree_map(lambda f, r: jnp.concatenate([f[None], r]), first, rest)
+    before = tree.tree_map(lambda a, e: jnp.concatenate([jnp.broadcast_to(e, (1,) + a.shape[1:]), a[:-1]]),
+                           _doubling_scan(op, total, identity), identity)  # (2), shifted: the blocks before
+    out = tree.tree_map(fit, inner, op(tree.tree_map(lambda a: a[None], before), inner))  # (3)
+    return tree.tree_map(lambda a: jnp.reshape(jnp.swapaxes(a, 0, 1), (nb * L,) + a.shape[2:])[:T], out)
+
+
+def _doubling_scan(op, elems, identity):
+    r""":func:`prefix_scan` by recursive doubling (Hillis & Steele 1986): :math:`\lceil \log_2 T \rceil`
+    rounds, round ``d`` combining every ``out[k]`` with ``out[k - 2^d]`` (the entries before ``2^d``
+    with the identity, selected away), as one ``jax.lax.fori_loop``; work :math:`T \lceil \log_2 T
+    \rceil` combinations, ``op`` traced once."""
+    jax = _jax()
+    jnp, tree = jax.numpy, jax.tree_util
+    T = tree.tree_leaves(elems)[0].shape[0]
+    if T < 2:
+        return elems
+    rounds = int(np.ceil(np.log2(T)))
     k = jnp.arange(T)
 
     def body(d, x):
@@ -192,7 +234,7 @@ def prefix_scan(op, elems, identity):
         y = op(prev, x)
         return tree.tree_map(lambda a, b: jnp.broadcast_to(b, a.shape), x, y)
 
-    return jax.lax.fori_loop(0, rounds, body, elems) if T > 1 else elems
+    return jax.lax.fori_loop(0, rounds, body, elems)
 
 
 # --------------------------------------------------------------------------------------------
