@@ -9,6 +9,9 @@ the medians, and the agreement of the results. The process is pinned to one core
 ``benchmarks/filters.py``. Writes ``benchmarks/compose.json`` and ``book/performance_compose.md``
 (included by ``book/performance.md``); ``--quick`` prints only; ``--only grad,imm`` re-measures those
 sections alone and keeps the others from compose.json (the page says which, when, under what load).
+The ``memory`` section reports XLA's compiled memory analysis of ``jit(grad)`` of the total
+log-likelihood at long T, without and with ``total_loglik(..., checkpoint=c)`` (``jax.checkpoint``
+over segments of c steps), and the gradient's time both ways.
 """
 from __future__ import annotations
 
@@ -99,6 +102,17 @@ def kappa_cv(F, Q, H, R, P0, T):
 
 
 OUT_JSON, OUT_MD = ROOT / "benchmarks" / "compose.json", ROOT / "book" / "performance_compose.md"
+SECTIONS = ("jit", "grad", "vmap", "imm", "parallel", "memory")
+
+
+def memory_of(compiled) -> dict:
+    """XLA's buffer assignment of a compiled program (bytes): temporaries, arguments, outputs; None
+    where the backend reports none. Deterministic for a program and backend: not a measurement."""
+    ma = compiled.memory_analysis()
+    if ma is None:
+        return None
+    return {"temp": int(ma.temp_size_in_bytes), "argument": int(ma.argument_size_in_bytes),
+            "output": int(ma.output_size_in_bytes)}
 
 
 def main(argv=None):
@@ -106,7 +120,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--render-only", action="store_true", help="re-write the page fragment from compose.json")
     ap.add_argument("--only", default="", help="comma-separated sections to re-measure (jit, grad, vmap, imm, "
-                    "parallel), the others kept from compose.json; the page notes the date and load of each")
+                    "parallel, memory), the others kept from compose.json; the page notes the date and load of each")
     opts = ap.parse_args(argv)
     if opts.render_only:
         res = json.loads(OUT_JSON.read_text())
@@ -114,8 +128,8 @@ def main(argv=None):
         return res
     q = opts.quick
     only = [w for w in opts.only.split(",") if w]
-    if set(only) - {"jit", "grad", "vmap", "imm", "parallel"}:
-        ap.error(f"--only takes jit, grad, vmap, imm, parallel; got {opts.only!r}")
+    if set(only) - set(SECTIONS):
+        ap.error(f"--only takes {', '.join(SECTIONS)}; got {opts.only!r}")
     want = lambda section: not only or section in only  # noqa: E731
 
     def save(res):  # after each section: a run cut short keeps what it measured
@@ -272,6 +286,40 @@ def main(argv=None):
                                   for k, v in m.items() if k != "bound"}), flush=True)
         res["parallel"] = par
         stamp("parallel")
+
+    # ---- memory of the gradient at long T: total_loglik(..., checkpoint=c) ----------------------
+    if want("memory"):
+        RM = 100
+        Ts = (1000, 10_000) if q else (1000, 10_000, 100_000)
+        phi = jnp.asarray([np.log(Q_DENSITY * 1.5), np.log(SIGMA_Z**2 * 0.8)])
+        build = lambda p: (F, p[0] * Qbar, H, p[1] * R / SIGMA_Z**2)  # noqa: E731  as the grad section
+        mem = {"runs": RM, "repeats": min(REPEATS, 3), "jax": jax.__version__}
+        for TT in Ts:
+            c = round(TT ** 0.5)
+            zm = jnp.asarray(simulate(np.random.default_rng(TT + 1), RM, TT, [F], [Q]))
+
+            def ll(p, z, ck=None):
+                return tuning.total_loglik(p, build, z, x0, P0, missing=False, checkpoint=ck)
+            progs, comp = {}, {}
+            for k, fn in (("forward", ll), ("grad", jax.grad(ll)), ("grad_ckpt", jax.grad(lambda p, z: ll(p, z, c)))):
+                t0 = time.perf_counter()
+                progs[k] = jax.jit(fn).lower(phi, zm).compile()
+                comp[k] = time.perf_counter() - t0
+            fns = {k: (lambda k=k: progs[k](phi, zm)) for k in ("grad", "grad_ckpt")}
+            m = measure(fns, dict.fromkeys(fns, RM * TT), min(REPEATS, 3))  # 3: a call at T = 1e5 takes seconds
+            m["grad_ckpt"]["rel_diff"] = rel(m["grad_ckpt"]["out"], m["grad"]["out"])
+            for k in fns:
+                m[k].pop("out")
+                m[k]["compile_s"] = comp[k]
+            mem[str(TT)] = {"c": c, "bytes": {k: memory_of(pr) for k, pr in progs.items()}, **m}
+            res["memory"] = mem
+            res["load_average_at_end"] = os.getloadavg()[0]
+            save(res)
+            print(TT, c, json.dumps(mem[str(TT)]["bytes"]), json.dumps(
+                {k: {kk: m[k].get(kk) for kk in ("median", "min", "max", "rel_diff", "compile_s")} for k in fns}),
+                flush=True)
+        res["memory"] = mem
+        stamp("memory")
     res["load_average_at_end"] = os.getloadavg()[0]
     if not only:
         res["total_s"] = time.perf_counter() - t_start
@@ -301,7 +349,7 @@ def render(res) -> str:
         s = "0 (bitwise)" if d == 0 else f"below 1e{int(np.ceil(np.log10(d)))}"
         return s + (f" (bound {bound:.1g})" if bound else "")
 
-    j, g, v, im, p = (res.get(k) for k in ("jit", "grad", "vmap", "imm", "parallel"))
+    j, g, v, im, p, mm = (res.get(k) for k in SECTIONS)
     b = res["bound"]
     bb = b + res["dynamax_boost_bound"]
     L = ["<!-- generated by benchmarks/compose.py: do not edit by hand -->", ""]
@@ -315,7 +363,7 @@ def render(res) -> str:
              "spread\" otherwise. The target of every ratio so marked is 1: kftrack at least as fast as the call it "
              "is compared with.")
     names = {"jit": "composed calls", "grad": "grad", "vmap": "vmap over q", "imm": "IMM under grad",
-             "parallel": "parallel in time"}
+             "parallel": "parallel in time", "memory": "memory at long T"}
     for sec, st in res.get("remeasured", {}).items():
         L.append("")
         L.append(f"The {names[sec]} rows were re-measured on {st['date']}, alone (`--only {sec}`), under load "
@@ -386,6 +434,31 @@ def render(res) -> str:
                            "dynamax `parallel_inference`", "kftrack parallel / sequential",
                            "kftrack parallel / dynamax parallel", "rel. diff. of the means",
                            "compile: kftrack / dynamax parallel"], rows))
+        L.append("")
+    if mm:
+        mb = lambda b: f"{b / 1e6:.3g} MB"  # noqa: E731
+        L.append(f"**Memory at long T** ({mm['runs']} runs × T steps, the model and parameters of the grad rows): "
+                 "the temporary memory of the compiled program (XLA's `memory_analysis()`: its buffer assignment, "
+                 "computed by the compiler for the program, not measured while it runs; "
+                 f"JAX {mm.get('jax', '?')}, CPU; the arguments, the data and the parameters, come on top) of "
+                 "`jit(tuning.total_loglik)` (forward), of `jit(grad)` of it with respect to (log q, log r), and "
+                 "of `jit(grad)` with `checkpoint=c` (segments of c = round(√T) steps under "
+                 f"`jax.checkpoint`); the gradient's steps/s both ways, median of {mm['repeats']} repeats (min–max), "
+                 "and the largest relative difference of the two gradients:")
+        L.append("")
+        rows = []
+        for TT, m in ((k, v) for k, v in mm.items() if k not in ("runs", "repeats", "jax")):
+            by = m["bytes"]
+            if by["grad"] is None:
+                mem_cells = ["not reported by this backend"] * 4 + [""]
+            else:
+                mem_cells = [mb(by["forward"]["temp"]), mb(by["grad"]["temp"]), mb(by["grad_ckpt"]["temp"]),
+                             f"{by['grad']['temp'] / by['grad_ckpt']['temp']:.1f}×", mb(by["grad"]["argument"])]
+            rows.append([f"{int(TT):,}", str(m["c"]), *mem_cells, cell(m["grad"]), cell(m["grad_ckpt"]),
+                         ratio(m["grad_ckpt"], m["grad"]), diff(m["grad_ckpt"])])
+        L.append(md_table(["T", "c", "forward: temp", "grad: temp", "grad, checkpoint=c: temp",
+                           "temp, grad / checkpointed", "arguments", "grad steps/s", "grad, checkpoint=c steps/s",
+                           "speed, checkpointed / plain", "gradients' rel. diff."], rows))
         L.append("")
     if "total_s" in res:
         L.append(f"Total {res['total_s']:.0f} s.")

@@ -27,6 +27,7 @@ import pytest
 from kftrack import engines, tuning
 from kftrack.ekf import extended_kalman_filter
 from kftrack.kalman import kalman_filter, rts_smoother
+from kftrack.kernels import kf_predict, kf_update
 from kftrack.ukf import unscented_kalman_filter
 from test_engines import EPS64, MODEL, F_jac, H_jac, _agree, cond_S, data, f, h, polar_data
 from test_engines import H as H_CV
@@ -338,3 +339,78 @@ def test_outputs_the_caller_drops_are_not_computed():
         pytest.skip("this JAX backend reports no memory analysis")
     assert mem[True].output_size_in_bytes == mem[False].output_size_in_bytes == zs.shape[0] * 30 * 4 * 8
     assert mem[True].temp_size_in_bytes == mem[False].temp_size_in_bytes
+
+
+# --------------------------------------------------------------------------------------------
+# total_loglik(..., checkpoint=c): the same sum in segments under jax.checkpoint
+# --------------------------------------------------------------------------------------------
+T_CK, C_CK = 4096, 60  # 68 segments of 60 steps (c near sqrt(T)) and a remainder of 16
+
+
+def _per_step_cotangents(zs, x0, P0, phi):
+    """sum_k |dl/dQ_k| * |dQ/dphi_q| and sum_k |dl/dR_k| * |dR/dphi_r| (summed over the entries):
+    the derivatives with respect to the Q and R used at each step, from the engine's general loop
+    given per-step stacks (kftrack.engines.run_total_scan with pred_steps, upd_steps; no row
+    missing)."""
+    q, r = np.exp(phi)
+    stack = lambda a: jnp.asarray(np.broadcast_to(a, (zs.shape[0],) + a.shape))  # noqa: E731
+
+    def ell(Qs, Rs):
+        return jnp.sum(engines.run_total_scan(jnp.asarray(zs), None, jnp.asarray(x0), jnp.asarray(P0),
+                                              (zs.shape[1],), (), engines.Kernel(kf_predict),
+                                              engines.Kernel(kf_update), pred_steps=(stack(F_CV), Qs),
+                                              upd_args=(jnp.asarray(H_CV),), upd_steps=(Rs,)))
+
+    cQ, cR = jax.jit(jax.grad(ell, argnums=(0, 1)), **JIT)(stack(q * QBAR), stack(r * R_CV))
+    return np.array([q * np.sum(np.abs(cQ).sum(0) * np.abs(QBAR)), r * np.sum(np.abs(cR).sum(0) * np.abs(R_CV))])
+
+
+def test_checkpoint_gives_the_same_value_and_gradient_in_less_memory():
+    # the shared-covariance path (missing=False), as benchmarks/compose.py; the segments
+    # (kftrack.engines._segmented) wrap the same step on every path
+    zs, x0, P0 = data(np.random.default_rng(33), T=T_CK, runs=3, missing="none")
+    zj, phi = jnp.asarray(zs), jnp.asarray(PHI)
+    prog = {c: jax.jit(jax.value_and_grad(lambda p, c=c: tuning.total_loglik(p, _build, zj, x0, P0, missing=False,
+                                                                               checkpoint=c)), **JIT)
+            .lower(phi).compile() for c in (None, C_CK)}
+    (v0, g0), (v1, g1) = prog[None](phi), prog[C_CK](phi)
+    # the value: the same steps in the same order, segment after segment: bit for bit
+    assert v1 == v0
+    # the gradient: reverse mode sums the contributions c_k of the T steps to the cotangents of Q and
+    # R (shared by every step), the plain loop one after the other, the checkpointed one segment by
+    # segment, then the segments: two orders of one sum of the same computed terms (the forward pass
+    # run again is the same arithmetic), each within gamma_{T-1} sum_k |c_k| of the exact sum
+    # (Higham 2002, eq. 4.4, any order), so |difference| <= 2 gamma_T sum_k |c_k| entry by entry,
+    # then times |dQ/dphi| (the chain rule, applied alike to both). sum_k |c_k| from the derivatives
+    # with respect to per-step stacks Q_k, R_k (a second program: a factor 2 for its round-off)
+    gamma = T_CK * EPS64 / (1 - T_CK * EPS64)
+    bound = 2 * 2 * gamma * _per_step_cotangents(zs, x0, P0, PHI)
+    diff = np.abs(np.asarray(g1) - np.asarray(g0))
+    print("gradient", np.asarray(g0), "|difference|", diff, "bound", bound)
+    assert np.all(diff <= bound), (diff, bound)
+    # memory: reverse mode keeps the residuals of every step, T b bytes (b per step: per run the
+    # state and the innovations); with c steps per segment it keeps the state at the start of each
+    # segment, b0 <= about b (x, P, s), and the residuals of one segment at a time:
+    # (T/c) b0 + c b (+ the remainder's, < c b). At T = 4096, c = 60 the ratio is T / (T/c + c) = 32
+    # for b0 = b (21 for b0 = 2 b); asserted: > 8, a further factor 2.5 for the temporaries whose
+    # size does not grow with T (the covariance step, one segment's gains). memory_analysis is
+    # XLA's buffer assignment of the compiled program, not a measurement: the same on every machine
+    # of a backend
+    mem = {c: p.memory_analysis() for c, p in prog.items()}
+    if mem[None] is None:
+        pytest.skip("this JAX backend reports no memory analysis")
+    print("temp bytes", mem[None].temp_size_in_bytes, "with checkpoint", mem[C_CK].temp_size_in_bytes)
+    assert mem[None].temp_size_in_bytes > 8 * mem[C_CK].temp_size_in_bytes
+
+
+def test_bad_checkpoint_is_named():
+    zs, x0, P0 = data(np.random.default_rng(34), T=10, runs=2, missing="none")
+    for bad in (0, -3):
+        with pytest.raises(ValueError, match=r"^checkpoint must be a positive int .*got " + str(bad)):
+            tuning.total_loglik(jnp.asarray(PHI), _build, zs, x0, P0, checkpoint=bad)
+    for bad in (2.5, True, "64", np.array([4])):
+        with pytest.raises(TypeError, match=r"^checkpoint must be None or a positive int"):
+            tuning.total_loglik(jnp.asarray(PHI), _build, zs, x0, P0, checkpoint=bad)
+    # the NumPy engine keeps no residuals: a valid checkpoint changes nothing there
+    assert tuning.total_loglik(PHI, _build, zs, x0, P0, checkpoint=np.int64(3)) == tuning.total_loglik(
+        PHI, _build, zs, x0, P0)

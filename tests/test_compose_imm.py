@@ -12,6 +12,13 @@ exact JAX gradient against central differences of the NumPy engine (tests/test_t
 _central_difference: truncation h^2 |f'''| / 6, f''' from a 5-point difference, plus round-off
 delta / h), plus delta for the JAX gradient's own round-off. Power: a gradient 1 % off would
 fail (twice the bound is below 1 % of every component).
+
+The IMM smoother (kftrack.imm.imm_smoother, Kim's backward pass) on the JAX engine: after the
+filter's T steps, T - 1 backward steps, each an RTS step per pair of modes whose gain solves
+with the pair's prediction F_j P^i F_j^T + Q_j; so the bound 2T r n kappa eps scale per field,
+kappa the largest condition number of the innovation covariances (as above) and of those pair
+predictions. A scalar of the smoothed means, f = sum of squares of the smoothed positions:
+delta_f = 2 sum|x| times the bound of x (first order).
 """
 from __future__ import annotations
 
@@ -65,12 +72,16 @@ def _params(phi, xp=np):
     return imm.IMMParams(F_MODES, q[:, None, None] * QBAR, H, R, xp.reshape(phi[2:], (2, 2)), LOG_MU0)
 
 
+def _numpy_bank(phi):
+    """The IMM (KalmanMode bank) that IMMParams(phi) describes."""
+    q = np.exp(phi[:2])
+    return imm.IMM([imm.KalmanMode(_Fixed(F_MODES[i], q[i] * QBAR[i]), R) for i in range(2)],
+                   _softmax(phi[2:].reshape(2, 2)), _softmax(LOG_MU0))
+
+
 def _numpy_run(phi, zs, x0, P0):
     """imm_filter on the NumPy engine with the IMM that IMMParams(phi) describes."""
-    q = np.exp(phi[:2])
-    est = imm.IMM([imm.KalmanMode(_Fixed(F_MODES[i], q[i] * QBAR[i]), R) for i in range(2)],
-                  _softmax(phi[2:].reshape(2, 2)), _softmax(LOG_MU0))
-    return imm.imm_filter(est, zs, x0, P0, DT)
+    return imm.imm_filter(_numpy_bank(phi), zs, x0, P0, DT)
 
 
 def _total(res):
@@ -113,9 +124,7 @@ def test_imm_loglik_equals_imm_filter_on_the_numpy_engine():
     zs, x0, P0 = _data(31)
     ref = _numpy_run(PHI, zs, x0, P0)
     # imm_params of the same estimator gives the same arrays
-    q = np.exp(PHI[:2])
-    est = imm.IMM([imm.KalmanMode(_Fixed(F_MODES[i], q[i] * QBAR[i]), R) for i in range(2)],
-                  _softmax(PHI[2:].reshape(2, 2)), _softmax(LOG_MU0))
+    est = _numpy_bank(PHI)
     p = imm.imm_params(est, DT)
     assert np.allclose(p.Q, _params(PHI).Q, rtol=0, atol=0) and np.allclose(_softmax(p.logits), est.transition(DT))
     for missing in (None, np.isnan(zs).all(-1)):  # NaN rows found, or a concrete mask
@@ -216,3 +225,167 @@ def test_bad_params_are_named():
         imm.imm_params(imm.GPB1(modes, np.full((2, 2), 0.5), np.full(2, 0.5)), DT)
     with pytest.raises(ValueError, match=r"^dt must be a scalar interval"):
         imm.imm_params(imm.IMM(modes, np.full((2, 2), 0.5), np.full(2, 0.5)), np.ones(3))
+
+
+# --------------------------------------------------------------------------------------------
+# (d) the smoother: imm_smoother's JAX engine, under jit, vmap and grad
+# --------------------------------------------------------------------------------------------
+BANK = _numpy_bank(PHI)  # one bank object: its JAX filter compiles once for the tests below
+POS = [0, 2]  # the positions x, y of the state [x, vx, y, vy]
+FIELDS = ("x", "P", "mu", "xs[0]", "xs[1]", "Ps[0]", "Ps[1]")
+
+
+def _kappa_s(res, phi):
+    """kappa of the smoother's bound (module docstring): that of the filter's innovations, and
+    the largest condition number of the pair predictions F_j P^i F_j^T + Q_j over the steps,
+    runs and pairs of the NumPy result ``res`` at ``phi``."""
+    Q = np.exp(phi[:2])[:, None, None] * QBAR
+    pairs = [F_MODES[j] @ np.asarray(P) @ F_MODES[j].T + Q[j] for P in res.Ps for j in range(2)]
+    return max(_kappa(res), max(float(np.max(np.linalg.cond(A.reshape(-1, N, N)))) for A in pairs))
+
+
+def _agree_s(ref, res, kappa):
+    """Every field of two smoothed results within 2T r n kappa eps scale (module docstring)."""
+    return _agree((ref.x, ref.P, ref.mu, *ref.xs, *ref.Ps), (res.x, res.P, res.mu, *res.xs, *res.Ps), 2 * T,
+                  2 * N, kappa, names=FIELDS)
+
+
+def _smooth(p, zs, x0, P0):
+    """The pure pipeline: imm_loglik's filtered sequence, smoothed with the same IMMParams (the
+    JAX engines of filter and smoother in one trace)."""
+    return imm.imm_smoother(p, imm.imm_loglik(p, zs, x0, P0)[1])
+
+
+def _jax_result(res):
+    """A filtered result as JAX arrays (the NumPy engine's numbers: the smoothers then start from
+    the same input, and no JAX filter is compiled for it)."""
+    return jax.tree_util.tree_map(jnp.asarray, res)
+
+
+def test_imm_smoother_jax_engine_agrees_with_the_numpy_engine():
+    zs, x0, P0 = _data(36)  # RUNS runs; a row missing in every run, one in one run only
+    filt = imm.imm_filter(BANK, zs, x0, P0, DT)
+    ref = imm.imm_smoother(BANK, filt, DT)
+    kappa = _kappa_s(filt, PHI)
+    jres = _jax_result(filt)
+    for first in (BANK, _params(PHI)):  # an IMM; the IMMParams of the same bank
+        back = imm.imm_smoother(first, jres, DT if first is BANK else None)
+        assert all(isinstance(a, jax.Array) for a in (back.x, back.P, back.mu, *back.xs, *back.Ps))
+        print(f"JAX engine against NumPy: largest difference / bound {_agree_s(ref, back, kappa):.2g} "
+              f"(kappa {kappa:.3g})")
+        # at T - 1 the smoother is the filter, bit for bit
+        for a, b in zip((back.x, back.P, back.mu, *back.xs, *back.Ps), (jres.x, jres.P, jres.mu, *jres.xs, *jres.Ps)):
+            assert np.array_equal(np.asarray(a[-1]), np.asarray(b[-1]))
+    # power: the turning mode's q off by 1e-6 (relative) fails the check
+    with pytest.raises(AssertionError):
+        _agree_s(ref, imm.imm_smoother(_params(PHI + np.array([0.0, 1e-6, 0, 0, 0, 0])), jres), kappa)
+
+
+def test_imm_smoother_under_jit_equals_the_direct_call():
+    zs, x0, P0 = _data(37)
+    filt = imm.imm_filter(BANK, zs, x0, P0, DT)
+    kappa = _kappa_s(filt, PHI)
+    jres = _jax_result(filt)
+    direct = imm.imm_smoother(BANK, jres, DT)
+    # the filtered result enters the caller's jit as an argument: abstract inside, shapes checked
+    jitted = jax.jit(lambda res: imm.imm_smoother(BANK, res, DT), **JIT)(jres)
+    print(f"jit against the direct call: largest difference / bound {_agree_s(direct, jitted, kappa):.2g}")
+    with pytest.raises(AssertionError):  # power: the direct call with q_1 (1 + 1e-6) fails the check
+        _agree_s(imm.imm_smoother(_params(PHI + np.array([0.0, 1e-6, 0, 0, 0, 0])), jres), jitted, kappa)
+
+
+QS = np.array([0.05, 0.5, 5.0])  # q_1 of the turning mode mapped by vmap; PHI's own (0.5) among them
+AT_PHI = 1
+
+
+@pytest.fixture(scope="module")
+def mapped():
+    """f = sum of squares of the smoothed positions, its gradient and the smoothed sequence, for
+    IMMParams whose turning mode's Q is mapped over QS: jax.jit(jax.vmap(jax.value_and_grad(f))),
+    one compilation for the vmap test and the grad test (the filter, imm_loglik, and the smoother
+    in one trace)."""
+    zs, x0, P0 = _data(38)
+    zj = jnp.asarray(zs)
+
+    def f(p):
+        back = _smooth(p, zj, x0, P0)
+        return jnp.sum(back.x[..., POS] ** 2), back
+
+    Qs = np.stack([_params(_phi_at(q)).Q for q in QS])
+    assert np.array_equal(Qs[AT_PHI], _params(PHI).Q)
+    params = jax.tree_util.tree_map(jnp.asarray, _params(PHI)._replace(Q=Qs))
+    axes = imm.IMMParams(None, 0, None, None, None, None)
+    (value, back), g = jax.jit(jax.vmap(jax.value_and_grad(f, has_aux=True), in_axes=(axes,)), **JIT)(params)
+    return zs, x0, P0, params, value, back, g
+
+
+def _phi_at(q1):
+    phi = PHI.copy()
+    phi[1] = np.log(q1)
+    return phi
+
+
+def test_imm_smoother_vmap_over_a_noise_level_equals_a_loop_of_calls(mapped):
+    # each mapped value against a call of the NumPy engine (filter and smoother) at that q_1
+    zs, x0, P0, _, _, back, _ = mapped
+    assert back.x.shape == (QS.size, T, RUNS, N) and back.Ps[0].shape == (QS.size, T, RUNS, N, N)
+    for i, q1 in enumerate(QS):
+        phi = _phi_at(q1)
+        filt = _numpy_run(phi, zs, x0, P0)
+        kappa = _kappa_s(filt, phi)
+        one = jax.tree_util.tree_map(lambda v: v[i], back)
+        _agree_s(imm.imm_smoother(_numpy_bank(phi), filt, DT), one, kappa)
+        # power: the call at q_1 (1 + 1e-6) fails the check
+        phi[1] += 1e-6
+        with pytest.raises(AssertionError):
+            _agree_s(imm.imm_smoother(_numpy_bank(phi), _numpy_run(phi, zs, x0, P0), DT), one, kappa)
+
+
+def test_grad_of_smoothed_positions_wrt_log_noise_levels_matches_central_differences(mapped):
+    # the gradient at PHI, one of the mapped values: jax.grad over the IMMParams, then the chain
+    # rule d/dlog q_i = <df/dQ_i, Q_i>
+    zs, x0, P0, params, value, _, g = mapped
+    grad = np.sum(np.asarray(g.Q[AT_PHI]) * np.asarray(params.Q[AT_PHI]), axis=(1, 2))
+
+    def f_np(log_q):  # sum of squares of the smoothed positions, NumPy engine
+        est = _numpy_bank(np.concatenate([log_q, PHI[2:]]))
+        return float(np.sum(imm.imm_smoother(est, imm.imm_filter(est, zs, x0, P0, DT), DT).x[..., POS] ** 2))
+
+    filt = _numpy_run(PHI, zs, x0, P0)
+    x = imm.imm_smoother(BANK, filt, DT).x
+    # delta_f = 2 sum|x_pos| (2T r n kappa eps max|x|), first order (module docstring)
+    delta = 2 * np.sum(np.abs(x[..., POS])) * 2 * T * 2 * N * _kappa_s(filt, PHI) * EPS64 * np.max(np.abs(x))
+    assert abs(float(value[AT_PHI]) - f_np(PHI[:2])) <= 2 * delta
+    fd, bound = _central_difference(f_np, PHI[:2], np.full(2, STEP), delta)
+    _check_gradient(grad, fd, bound + delta, "imm smoother")
+    with pytest.raises(AssertionError):  # power: a gradient 1 % off fails
+        _check_gradient(grad * 1.01, fd, bound + delta, "imm smoother, 1 % off")
+
+
+def test_imm_smoother_bad_input_is_named():
+    zs, x0, P0 = _data(40)
+    jres = _jax_result(imm.imm_filter(BANK, zs, x0, P0, DT))
+    p = _params(PHI)
+    with pytest.raises(TypeError, match=r"^estimator must be an IMM .* or an IMMParams, got tuple"):
+        imm.imm_smoother(tuple(p), jres)
+    with pytest.raises(ValueError, match=r"^dt and times must be None when the first argument is an IMMParams"):
+        imm.imm_smoother(p, jres, DT)
+    with pytest.raises(TypeError, match=r"^result must be an IMMResult .*got tuple"):
+        imm.imm_smoother(p, tuple(jres))
+    with pytest.raises(ValueError, match=r"^params.F must have shape \(\.\.\., 4, 4\).*from result.x"):
+        imm.imm_smoother(p._replace(F=np.zeros((2, 3, 3))), jres)
+    with pytest.raises(ValueError, match=r"^params.Q must have shape \(2, 4, 4\).*got shape \(3, 4, 4\)"):
+        imm.imm_smoother(p._replace(Q=np.stack([QBAR[0]] * 3)), jres)
+    # inside a trace the shapes are checked (values are not known there)
+    with pytest.raises(ValueError, match=r"^result.x must have shape \(20, 3, 4\), got \(20, 3, 2\)"):
+        jax.jit(lambda res: imm.imm_smoother(BANK, res._replace(x=res.x[..., :2]), DT))(jres)
+    with pytest.raises(ValueError, match=r"^result.mu must have shape \(T, \.\.\., 2\)"):
+        jax.jit(lambda q: imm.imm_smoother(p._replace(Q=q), jres._replace(mu=jres.mu[..., :1])))(p.Q)
+    # a concrete JAX result is checked as a NumPy one
+    with pytest.raises(ValueError, match=r"^result.mu must hold finite mode probabilities"):
+        imm.imm_smoother(p, jres._replace(mu=jres.mu.at[3, 0, 0].set(jnp.nan)))
+    # the JAX engine takes the banks imm_filter's JAX engine takes
+    modes = [imm.KalmanMode(ConstantVelocity(ndim=2, q=1.0), R)] * 2
+    swapped = imm.IMM(modes, np.full((2, 2), 0.5), np.full(2, 0.5), components=[(0, 1, 2, 3), (2, 3, 0, 1)])
+    with pytest.raises(TypeError, match=r"^estimator: the JAX engine of imm_smoother runs banks of KalmanMode"):
+        imm.imm_smoother(swapped, jres, DT)

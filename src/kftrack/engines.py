@@ -68,7 +68,10 @@ output: the stored loop of the sequence would carry its whole output buffers, an
 mode their cotangents, through every step. For the linear filter :func:`run_total_scan` runs the
 covariance recursion first, in a loop of its own that also forms :math:`S_k^{-1}` once per step,
 then the means, whose score :math:`y^\top S_k^{-1} y` leaves reverse mode two vectors per run
-and step (:math:`y` and :math:`S_k^{-1} y`) and one reduction over the runs per step.
+and step (:math:`y` and :math:`S_k^{-1} y`) and one reduction over the runs per step. Reverse mode
+still keeps residuals for every step, memory O(T); ``total_loglik(..., checkpoint=c)`` runs the
+steps in segments of ``c`` under ``jax.checkpoint`` (``_segmented``): O(T/c + c), for about one
+more forward pass.
 
 **Precision.** Both engines compute in float64 unless ``float32`` is chosen explicitly. JAX
 computes in float32 unless ``jax_enable_x64`` is on; the JAX engine does not switch it on for
@@ -92,7 +95,7 @@ from .results import FilterResult
 
 __all__ = ["Kernel", "Checked", "NonFiniteOutput", "PerDt", "check_dts", "use_jax", "is_tracer", "check_dtype",
            "choose_engine", "to_engine", "stand_in", "Given", "run_filter", "run_sequence", "run_scan",
-           "run_total_scan", "run_imm_scan", "run_imm_total_scan", "run_smoother_scan"]
+           "run_total_scan", "run_imm_scan", "run_imm_total_scan", "run_smoother_scan", "run_imm_smoother_scan"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -237,7 +240,7 @@ def _value(a, jax_engine: bool):
 
 def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(), pred_steps=(), upd_args=(),
                upd_steps=(), sources=(), cov_shapes=None, dtype=None, progress: bool = False,
-               priors: bool = True, total: bool = False):
+               priors: bool = True, total: bool = False, checkpoint: int | None = None):
     """The one call of a whole-sequence filter after its validation: choose the engine, convert the
     arrays to it and run the time loop (:func:`run_sequence` or :func:`run_scan`).
 
@@ -261,6 +264,8 @@ def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(),
         ``batch`` shaped (:func:`run_total_scan` on the JAX engine: no sequence is stored, so
         ``jax.grad`` differentiates a loop that carries ``(x, P, sum)`` and nothing else; the
         NumPy engine's ``nansum`` over time of ``loglik``).
+    checkpoint : with ``total`` on the JAX engine, None or a validated int ``c >= 1``: segments of
+        ``c`` steps under ``jax.checkpoint`` (:func:`run_total_scan`); ignored otherwise.
 
     Returns
     -------
@@ -288,7 +293,7 @@ def run_filter(zs, gone, x0, P0, batch: tuple, predict, update, *, pred_args=(),
         kw = dict(pred_args=tuple(map(conv, pred_args)), pred_steps=tuple(map(conv, pred_steps)),
                   upd_args=tuple(map(conv, upd_args)), upd_steps=tuple(map(conv, upd_steps)))
         if jax_engine:
-            return run_total_scan(*args, **kw)
+            return run_total_scan(*args, **kw, checkpoint=checkpoint)
         return np.nansum(run_sequence(*args, **kw, progress=progress, priors=False).loglik, axis=0)
     return (run_scan if jax_engine else run_sequence)(
         conv(zs), gone_e, conv(x0), conv(P0), tuple(batch), tuple(cov_batch), predict, update,
@@ -532,33 +537,59 @@ def run_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, 
 
 
 def _total_impl(zs, gone, x0, P0, pred_args, pred_steps, upd_args, upd_steps, *, batch, cov_batch, predict,
-                update):
+                update, checkpoint=None):
     jax = _jax()
     jnp = jax.numpy
     at = lambda a, k: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa: E731
     n = x0.shape[-1]
     x = jnp.broadcast_to(x0, batch + (n,))
     P = jnp.broadcast_to(P0, cov_batch + (n, n))
-    s0, ks, zero = jnp.zeros(batch, x0.dtype), jnp.arange(zs.shape[0]), jnp.zeros((), x0.dtype)
+    s0, zero = jnp.zeros(batch, x0.dtype), jnp.zeros((), x0.dtype)
     if predict.fn is kf_predict and update.fn is kf_update and not upd_steps:
-        return _total_linear(jax, at, zs, gone, x, P, s0, ks, zero, pred_args, pred_steps, upd_args, predict,
-                             dict(update.static))
+        segment = _total_linear(jax, at, zs, gone, zero, pred_args, pred_steps, upd_args, predict,
+                                dict(update.static))
+    else:
+        def step(carry, k):
+            x, P, s = carry
+            g = None if gone is None else at(gone, k)
+            _, _, _, ll, x_next, P_next = _step(jnp, predict, update, x, P, at(zs, k), g, pred_args,
+                                                tuple(at(a, k) for a in pred_steps), upd_args,
+                                                tuple(at(a, k) for a in upd_steps), False)
+            ll = jnp.broadcast_to(ll if g is None else jnp.where(g, zero, ll), batch)
+            return (jnp.broadcast_to(x_next, x.shape), jnp.broadcast_to(P_next, P.shape), s + ll), None
 
-    def step(carry, k):
-        x, P, s = carry
-        g = None if gone is None else at(gone, k)
-        _, _, _, ll, x_next, P_next = _step(jnp, predict, update, x, P, at(zs, k), g, pred_args,
-                                            tuple(at(a, k) for a in pred_steps), upd_args,
-                                            tuple(at(a, k) for a in upd_steps), False)
-        ll = jnp.broadcast_to(ll if g is None else jnp.where(g, zero, ll), batch)
-        return (jnp.broadcast_to(x_next, x.shape), jnp.broadcast_to(P_next, P.shape), s + ll), None
-
-    (_, _, s), _ = jax.lax.scan(step, (x, P, s0), ks)
+        segment = lambda carry, ks: jax.lax.scan(step, carry, ks)[0]  # noqa: E731
+    _, _, s = _segmented(jax, segment, (x, P, s0), zs.shape[0], checkpoint)
     return s
 
 
-def _total_linear(jax, at, zs, gone, x, P, s0, ks, zero, pred_args, pred_steps, upd_args, predict, opts):
-    r"""The log-likelihood of the linear Kalman filter in two loops. First the covariance
+def _segmented(jax, segment, carry, T: int, checkpoint):
+    r"""``segment(carry, arange(T))`` for ``segment(carry, ks) -> carry``, a loop over the steps
+    ``ks``; with ``checkpoint = c`` (``1 <= c < T``) the same steps as an outer ``lax.scan`` over
+    :math:`\lfloor T/c \rfloor` segments of ``c`` steps whose body is ``jax.checkpoint(segment)``,
+    then the :math:`T \bmod c` remaining steps as one plain segment. Under reverse mode the outer
+    loop keeps only the carry at each segment's start and each segment's forward pass is run again
+    when its reverse pass needs its residuals: memory :math:`O(T/c + c)` per-step states instead of
+    :math:`O(T)`, for about one more forward pass (Griewank & Walther 2008, ch. 12). The steps run
+    the same arithmetic in the same order, so the value is the same bit for bit (checked in
+    ``tests/test_compose.py``); only the sums that reverse mode accumulates over the steps (the
+    cotangents of inputs shared by every step) are added segment by segment, a round-off
+    difference."""
+    jnp = jax.numpy
+    ks = jnp.arange(T)
+    if checkpoint is None or checkpoint >= T:
+        return segment(carry, ks)
+    nseg = T // checkpoint
+    body = jax.checkpoint(lambda c, seg: (segment(c, seg), None), prevent_cse=False)  # inside a scan: no CSE
+    carry, _ = jax.lax.scan(body, carry, ks[:nseg * checkpoint].reshape(nseg, checkpoint))
+    if T > nseg * checkpoint:  # the remainder, fewer than c steps: residuals of the size of one segment
+        carry = segment(carry, ks[nseg * checkpoint:])
+    return carry
+
+
+def _total_linear(jax, at, zs, gone, zero, pred_args, pred_steps, upd_args, predict, opts):
+    r"""The segment ``(x, P, s), ks -> (x, P, s)`` of the log-likelihood of the linear Kalman filter
+    over the steps ``ks`` (:func:`_segmented`), in two loops. First the covariance
     recursion, which does not depend on the data (:func:`kftrack.kernels.kf_gain`, ``kf_predict``;
     batch ``cov_batch``, so computed once for all runs on the shared path), storing per step the
     gain ``K``, :math:`S^{-1}` (:func:`kftrack.kernels.solve_spd` of ``S`` and the identity, made
@@ -582,18 +613,15 @@ def _total_linear(jax, at, zs, gone, x, P, s0, ks, zero, pred_args, pred_steps, 
     of the two solves, :math:`O(m\,\kappa(S)\,\varepsilon)` relative per term."""
     jnp = jax.numpy
     H, R = upd_args
-    n = x.shape[-1]
-    x_dummy = jnp.zeros((n,), x.dtype)  # the mean of kf_predict in the covariance loop: unused, dropped
-    m = H.shape[-2]
-    eye, log_2pi_m, quadratic = jnp.eye(m, dtype=x.dtype), m * math.log(2.0 * math.pi), _quadratic_form()
+    n, m = H.shape[-1], H.shape[-2]
+    x_dummy = jnp.zeros((n,), zero.dtype)  # the mean of kf_predict in the covariance loop: unused, dropped
+    eye, log_2pi_m, quadratic = jnp.eye(m, dtype=zero.dtype), m * math.log(2.0 * math.pi), _quadratic_form()
 
     def cov_step(P, k):
         gain = kf_gain(P, H, R, **opts)
         P_post = gain.P if gone is None else jnp.where(at(gone, k)[..., None, None], P, gain.P)
         _, P_next = predict(x_dummy, P_post, *pred_args, *(at(a, k) for a in pred_steps))
         return jnp.broadcast_to(P_next, P.shape), (gain.K, sym(solve_spd(gain.S, eye)), gain.logdet)
-
-    _, gains = jax.lax.scan(cov_step, P, ks)
 
     def mean_step(carry, inp):
         x, s = carry
@@ -609,8 +637,13 @@ def _total_linear(jax, at, zs, gone, x, P, s0, ks, zero, pred_args, pred_steps, 
         x_next, _ = predict(x_post, None, *pred_args, *(at(a, k) for a in pred_steps))
         return (jnp.broadcast_to(x_next, x.shape), s + jnp.broadcast_to(ll, s.shape)), None
 
-    (_, s), _ = jax.lax.scan(mean_step, (x, s0), (ks, gains))
-    return s
+    def segment(carry, ks):
+        x, P, s = carry
+        P, gains = jax.lax.scan(cov_step, P, ks)
+        (x, s), _ = jax.lax.scan(mean_step, (x, s), (ks, gains))
+        return x, P, s
+
+    return segment
 
 
 @lru_cache(maxsize=1)
@@ -641,11 +674,11 @@ def _quadratic_form():
 
 @lru_cache(maxsize=1)
 def _total_jit():
-    return _jax().jit(_total_impl, static_argnames=("batch", "cov_batch", "predict", "update"))
+    return _jax().jit(_total_impl, static_argnames=("batch", "cov_batch", "predict", "update", "checkpoint"))
 
 
 def run_total_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, update, pred_args=(), pred_steps=(),
-                   upd_args=(), upd_steps=()):
+                   upd_args=(), upd_steps=(), checkpoint: int | None = None):
     r"""The JAX engine for the log-likelihood alone: the step of :func:`run_scan` under a plain
     ``jax.lax.scan`` whose carry is ``(x, P, s)``, ``s`` the running sum over the measured steps
     of ``loglik`` (:math:`\ell = \sum_k \log N(y_k; 0, S_k)`), with no per-step output. Under
@@ -654,9 +687,13 @@ def run_total_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, up
     through every step of the reverse pass. With the linear kernels (``kf_predict``,
     ``kf_update``) two loops, covariances then means (``_total_linear``: the reverse pass of the
     score touches per run the innovations alone). Same arguments as :func:`run_scan` (no
-    ``priors``); returns ``s`` of shape ``batch``."""
+    ``priors``), and ``checkpoint``: None, or an int ``c >= 1`` (validated by the caller): the
+    steps in segments of ``c`` under ``jax.checkpoint`` (:func:`_segmented`; with the linear
+    kernels both loops run per segment, so the gains stored are those of one segment). Returns
+    ``s`` of shape ``batch``."""
     return _total_jit()(zs, gone, x0, P0, tuple(pred_args), tuple(pred_steps), tuple(upd_args), tuple(upd_steps),
-                        batch=tuple(batch), cov_batch=tuple(cov_batch), predict=predict, update=update)
+                        batch=tuple(batch), cov_batch=tuple(cov_batch), predict=predict, update=update,
+                        checkpoint=checkpoint)
 
 
 def _imm_cycle(H, R, batch, mixing_weights):
@@ -808,4 +845,68 @@ def run_smoother_scan(x, P, x_prior, P_prior, F, per_step: bool):
     :class:`kftrack.kalman.FilterResult`; ``F`` one transition ``(..., n, n)`` or, with
     ``per_step``, a stack ``(T, ..., n, n)``. Returns ``(x_s, P_s, G)``."""
     return _smooth_jit()(x, P, x_prior, P_prior, F, per_step=bool(per_step))
+
+
+def _imm_smooth_impl(mu, x, P, xs, Ps, Pis, Fs, Qs, *, backward_weights):
+    jax = _jax()
+    jnp = jax.numpy
+    nb = mu.ndim - 2  # batch axes
+    r = Pis.shape[-1]
+    xs_f, Ps_f = jnp.stack(xs, axis=1), jnp.stack(Ps, axis=1)  # (T, r, ..., n), (T, r, ..., n, n)
+    log_mu = jnp.log(mu)
+    per_mode = lambda a: jnp.reshape(a, (r,) + (1,) * nb + (1,) + a.shape[1:])  # noqa: E731  (r_j, ..., 1, n, n)
+
+    def body(carry, inp):
+        log_ms, xs_s, Ps_s = carry  # smoothed at k + 1: (..., r), (r, ..., n), (r, ..., n, n)
+        log_mu_f, x_f, P_f, Pi, F, Q = inp  # filtered at k; the transition from k to k + 1
+        cond, log_ms = backward_weights(log_mu_f, Pi, log_ms)  # (..., r_i, r_j), (..., r_i)
+        # every pair (i at k, j at k + 1) at once: j on the leading axis, i last of the batch axes
+        x_i, P_i = jnp.moveaxis(x_f, 0, -2)[None], jnp.moveaxis(P_f, 0, -3)[None]  # (1, ..., r_i, n[, n])
+        F_j = per_mode(F)
+        x_pred, P_pred = kf_predict(x_i, P_i, F_j, per_mode(Q))
+        x_ij, P_ij, _ = rts_step(x_i, P_i, x_pred, P_pred, xs_s[:, ..., None, :], Ps_s[:, ..., None, :, :], F_j)
+        x_new, P_new = moment_match(cond, x_ij, P_ij)  # merged over j: (..., r_i, n[, n])
+        xs_s, Ps_s = jnp.moveaxis(x_new, -2, 0), jnp.moveaxis(P_new, -3, 0)
+        mu_s = jnp.exp(log_ms)
+        x_c, P_c = moment_match(mu_s, xs_s, Ps_s)
+        return (log_ms, xs_s, Ps_s), (mu_s, x_c, P_c, xs_s, Ps_s)
+
+    last = log_mu[-1]
+    init = (last - logsumexp(last, axis=-1, keepdims=True), xs_f[-1], Ps_f[-1])
+    _, (mu_s, x_s, P_s, xs_s, Ps_s) = jax.lax.scan(
+        body, init, (log_mu[:-1], xs_f[:-1], Ps_f[:-1], Pis[:-1], Fs[:-1], Qs[:-1]), reverse=True)
+    cat = lambda a, b: jnp.concatenate([a, b[-1:]])  # noqa: E731  the last step: the filter's own arrays
+    return (cat(x_s, x), cat(P_s, P), cat(mu_s, mu), tuple(cat(xs_s[:, i], xs[i]) for i in range(r)),
+            tuple(cat(Ps_s[:, i], Ps[i]) for i in range(r)))
+
+
+@lru_cache(maxsize=1)
+def _imm_smooth_jit():
+    return _jax().jit(_imm_smooth_impl, static_argnames=("backward_weights",))
+
+
+def run_imm_smoother_scan(mu, x, P, xs, Ps, Pis, Fs, Qs, *, backward_weights):
+    r"""The JAX engine of :func:`kftrack.imm.imm_smoother` for linear Kalman modes that share one
+    state: Kim's backward recursion under a reversed ``jax.lax.scan`` over ``k = T-2, ..., 0``,
+    every pair (mode ``i`` at ``k``, mode ``j`` at ``k + 1``) in one call of
+    :func:`kftrack.kernels.kf_predict` and :func:`kftrack.kernels.rts_step` (the pair axis a batch
+    axis of the kernels), merged over ``j`` and combined by :func:`kftrack.kernels.moment_match`.
+
+    Parameters
+    ----------
+    mu, x, P : (T, ..., r), (T, ..., n), (T, ..., n, n) the filter's mode probabilities and
+        combined posteriors; ``xs``, ``Ps`` tuples of r arrays (T, ..., n), (T, ..., n, n), the
+        mode-matched posteriors (:class:`kftrack.imm.IMMResult`).
+    Pis : (T, r, r) Markov matrix of the step after ``k``; ``Fs``, ``Qs`` (T, r, n, n) (the last
+        row unused).
+    backward_weights : ``(log_mu_k, Pi, log_ms_next) -> (w, log_ms_k)``, the smoother's weights
+        :math:`P\{M_{k+1} = j \mid M_k = i, Z^T\}` (..., r, r) and the smoothed log mode
+        probabilities of step ``k`` (a static, hashable function of the caller's).
+
+    Returns
+    -------
+    tuple
+        ``(x, P, mu, xs, Ps)`` smoothed, time first; at ``T - 1`` the inputs themselves.
+    """
+    return _imm_smooth_jit()(mu, x, P, tuple(xs), tuple(Ps), Pis, Fs, Qs, backward_weights=backward_weights)
 

@@ -47,6 +47,7 @@ Shapes: ``x`` ``(..., N)``, ``P`` ``(..., N, N)``, ``mu`` ``(..., r)``; time fir
 from __future__ import annotations
 
 import inspect
+import math
 from collections.abc import Callable, Sequence
 from typing import NamedTuple, Protocol, runtime_checkable
 
@@ -59,7 +60,8 @@ from ._validate import check_finite, check_missing, check_state, is_tracer, stan
 from .kernels import Update, ekf_predict, ekf_update, kf_predict, kf_update, logsumexp, mixing_log_weights, moment_match
 from .kernels import rts_step, ukf_predict, ukf_update
 from .kernels import residual, unscented, wrap_state
-from .engines import PerDt, check_dtype, check_dts, choose_engine, run_imm_scan, run_imm_total_scan, to_engine
+from .engines import PerDt, check_dtype, check_dts, choose_engine, run_imm_scan, run_imm_smoother_scan
+from .engines import run_imm_total_scan, to_engine, use_jax
 from .ukf import Points, check_points
 
 __all__ = [
@@ -894,17 +896,7 @@ def _check_scale(estimator: IMM, zs, row_missing, k: int, what: str) -> None:
 def _imm_filter_jax(estimator: IMM, zs, row_missing, x0, P0, mu0, dts, batch, dtype) -> IMMResult:
     """The JAX engine of :func:`imm_filter` (arguments already checked)."""
     modes, N, r = estimator.modes, estimator.N, estimator.r
-    if not all(isinstance(m, KalmanMode) for m in modes) or any(c != tuple(range(N)) for c in estimator.components):
-        raise TypeError("estimator: the JAX engine of imm_filter runs banks of KalmanMode that all hold the whole "
-                        f"common state (N = {N}); got modes {[type(m).__name__ for m in modes]} with components "
-                        f"{estimator.components}. Pass NumPy arrays to use the NumPy engine")
-    FQ = [[m._FQ(d) for m in modes] for d in dts]  # each distinct interval evaluated once (cached)
-    Fs = np.stack([np.stack([f for f, _ in row]) for row in FQ])
-    Qs = np.stack([np.stack([q for _, q in row]) for row in FQ])
-    if Fs.shape[2:] != (N, N) or Qs.shape[2:] != (N, N):
-        raise ValueError(f"estimator: the JAX engine needs each mode's F(dt), Q(dt) of shape ({N}, {N}), "
-                         f"got {Fs.shape[2:]} and {Qs.shape[2:]}")
-    Pis = np.stack([estimator.transition(d) for d in dts])
+    Fs, Qs, Pis = _linear_bank(estimator, dts, "imm_filter")
     H = np.stack([m.H for m in modes])
     R = np.stack([m.R for m in modes])
     with np.errstate(divide="ignore"):
@@ -919,6 +911,25 @@ def _imm_filter_jax(estimator: IMM, zs, row_missing, x0, P0, mu0, dts, batch, dt
 # --------------------------------------------------------------------------------------------
 # a pure entry point for jax.jit, jax.vmap and jax.grad
 # --------------------------------------------------------------------------------------------
+def _linear_bank(estimator: IMM, dts, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The arrays of the JAX engines (``what``: :func:`imm_filter`, :func:`imm_smoother`) for a bank
+    of :class:`KalmanMode` that all hold the whole common state: ``Fs``, ``Qs`` (T, r, N, N) and
+    ``Pis`` (T, r, r) at the intervals ``dts`` (T,), each distinct interval evaluated once (cached);
+    any other bank raises ``TypeError``."""
+    modes, N = estimator.modes, estimator.N
+    if not all(isinstance(m, KalmanMode) for m in modes) or any(c != tuple(range(N)) for c in estimator.components):
+        raise TypeError(f"estimator: the JAX engine of {what} runs banks of KalmanMode that all hold the whole "
+                        f"common state (N = {N}); got modes {[type(m).__name__ for m in modes]} with components "
+                        f"{estimator.components}. Pass NumPy arrays to use the NumPy engine")
+    FQ = [[m._FQ(d) for m in modes] for d in dts]
+    Fs = np.stack([np.stack([f for f, _ in row]) for row in FQ])
+    Qs = np.stack([np.stack([q for _, q in row]) for row in FQ])
+    if Fs.shape[2:] != (N, N) or Qs.shape[2:] != (N, N):
+        raise ValueError(f"estimator: the JAX engine needs each mode's F(dt), Q(dt) of shape ({N}, {N}), "
+                         f"got {Fs.shape[2:]} and {Qs.shape[2:]}")
+    return Fs, Qs, np.stack([estimator.transition(d) for d in dts])
+
+
 class IMMParams(NamedTuple):
     r"""The parameters of a linear IMM (full-state :class:`KalmanMode` bank, constant sampling
     interval) as arrays, for :func:`imm_loglik`: one pytree, so ``jax.grad`` and ``jax.vmap``
@@ -944,9 +955,10 @@ class IMMParams(NamedTuple):
     log_mu0: np.ndarray
 
 
-def _check_imm_params(params, n: int, m: int) -> int:
+def _check_imm_params(params, n: int, m: int | None, n_from: str = "x0", m_from: str = "zs") -> int:
     """Shapes of :class:`IMMParams` (values too when concrete; abstract values are checked
-    through :func:`kftrack._validate.stand_in`); returns ``r``."""
+    through :func:`kftrack._validate.stand_in`), ``n`` and ``m`` coming from the arguments named
+    ``n_from``, ``m_from`` (``m`` None: any); returns ``r``."""
     if not isinstance(params, IMMParams):
         raise TypeError(f"params must be an IMMParams, got {type(params).__name__}")
     logits = as_float_array(stand_in(params.logits, "matrix"), "params.logits")
@@ -962,11 +974,13 @@ def _check_imm_params(params, n: int, m: int) -> int:
         if np.isnan(a).any() or np.isposinf(a).any() or np.isneginf(a).all(-1).any():
             raise ValueError(f"{name} must be real logits (no NaN or +inf, not all -inf in a row), got shape "
                              f"{a.shape} with such values")
-    origin = f"r = {r} from params.logits, n = {n} from x0"
+    origin = f"r = {r} from params.logits, n = {n} from {n_from}"
     F = as_matrix(stand_in(params.F, "matrix"), "params.F", n, n, origin=origin)
     Q = check_covariance(stand_in(params.Q, "cov"), "params.Q", n, origin=origin)
-    H = as_matrix(stand_in(params.H, "matrix"), "params.H", m, n, origin=f"m = {m} from zs, n = {n} from x0")
-    R = check_covariance(stand_in(params.R, "cov"), "params.R", m, positive_definite=True, origin=f"m = {m} from zs")
+    H = as_matrix(stand_in(params.H, "matrix"), "params.H", m, n,
+                  origin=("" if m is None else f"m = {m} from {m_from}, ") + f"n = {n} from {n_from}")
+    R = check_covariance(stand_in(params.R, "cov"), "params.R", H.shape[-2], positive_definite=True,
+                         origin=f"m = {H.shape[-2]} from {m_from}")
     for name, a, shared in (("F", F, False), ("Q", Q, False), ("H", H, True), ("R", R, True)):
         if a.shape[:-2] != (r,) and not (shared and a.ndim == 2):
             alt = f" or {a.shape[-2:]} (shared by the modes)" if shared else ""
@@ -1148,7 +1162,8 @@ class IMMSmootherResult(NamedTuple):
     ``x`` (T, ..., N) and covariances ``P`` (T, ..., N, N) in the common state, smoothed mode
     probabilities ``mu`` (T, ..., r) :math:`P\\{M_k = j \\mid Z^T\\}`, and the mode-conditioned
     smoothed means ``xs`` and covariances ``Ps`` (tuples of r arrays (T, ..., n_i),
-    (T, ..., n_i, n_i), each on its mode's components)."""
+    (T, ..., n_i, n_i), each on its mode's components). NumPy arrays, or JAX arrays from the
+    smoother's JAX engine (a pytree: it passes through ``jax.jit`` and ``jax.vmap``)."""
 
     x: np.ndarray
     P: np.ndarray
@@ -1157,49 +1172,79 @@ class IMMSmootherResult(NamedTuple):
     Ps: tuple
 
 
-def _check_smoother_input(estimator, result) -> tuple[int, tuple]:
-    """Validate :func:`imm_smoother`'s estimator and result; returns ``(T, batch)``."""
+def _check_smoother_estimator(estimator) -> None:
+    """Validate :func:`imm_smoother`'s estimator (an :class:`IMM` whose modes have ``predict_linearized``)."""
     if not isinstance(estimator, IMM) or isinstance(estimator, GPB1):
         raise TypeError("estimator must be an IMM (not GPB1: its mode posteriors all start from the combined "
-                        f"estimate, which the smoother's pairwise predictions do not model), got {type(estimator).__name__}")
+                        "estimate, which the smoother's pairwise predictions do not model) or an IMMParams, got "
+                        f"{type(estimator).__name__}")
     for i, m in enumerate(estimator.modes):
         if not callable(getattr(m, "predict_linearized", None)):
             raise TypeError(f"estimator.modes[{i}] must be a KalmanMode, EKFMode or UKFMode, or have "
                             "predict_linearized(x, P, dt) (the backward pass needs the mode's transition matrix "
                             f"at the filtered state), got {type(m).__name__} without it")
+
+
+def _check_smoother_result(result, r: int, components: tuple, N: int) -> tuple[int, tuple]:
+    """Validate :func:`imm_smoother`'s result for ``r`` modes on ``components`` of an ``N``-state:
+    shapes always, the values of ``mu`` when concrete (not inside a JAX trace); returns
+    ``(T, batch)``."""
     if not isinstance(result, IMMResult):
         raise TypeError(f"result must be an IMMResult from imm_filter, got {type(result).__name__}")
-    r = estimator.r
     if result.xs is None or result.Ps is None or len(result.xs) != r or len(result.Ps) != r:
         raise ValueError(f"result must carry the per-mode posteriors xs, Ps of {r} modes (an IMMResult from "
                          "imm_filter with this estimator), got "
                          f"{None if result.xs is None else len(result.xs)} and "
                          f"{None if result.Ps is None else len(result.Ps)}")
-    mu = np.asarray(result.mu)
-    if mu.ndim < 2 or mu.shape[-1] != r:
-        raise ValueError(f"result.mu must have shape (T, ..., {r}), got shape {mu.shape}")
-    T, batch = mu.shape[0], mu.shape[1:-1]
-    bad = ~np.isfinite(mu) | (mu < 0)
-    if bad.any():
-        k = int(np.argwhere(bad)[0][0])
-        raise ValueError(f"result.mu must hold finite mode probabilities >= 0, got NaN, inf or a negative value "
-                         f"at step {k} (shape {mu.shape}); the smoother needs the filter's own result")
-    tol = max(_TOL, 8 * r * np.finfo(mu.dtype if mu.dtype.kind == "f" else float).eps)  # float32 results too
-    off = np.abs(mu.sum(-1) - 1.0)
-    if np.any(off > tol):
-        raise ValueError(f"result.mu must sum to 1 over its last axis (mode probabilities), got a sum off by "
-                         f"{off.max():.3g} (shape {mu.shape})")
-    for i, c in enumerate(estimator.components):
+    shape = tuple(np.shape(result.mu))
+    if len(shape) < 2 or shape[-1] != r:
+        raise ValueError(f"result.mu must have shape (T, ..., {r}), got shape {shape}")
+    T, batch = shape[0], shape[1:-1]
+    if not is_tracer(result.mu):  # inside a trace the values are not known: shapes alone
+        mu = np.asarray(result.mu)
+        bad = ~np.isfinite(mu) | (mu < 0)
+        if bad.any():
+            k = int(np.argwhere(bad)[0][0])
+            raise ValueError(f"result.mu must hold finite mode probabilities >= 0, got NaN, inf or a negative "
+                             f"value at step {k} (shape {mu.shape}); the smoother needs the filter's own result")
+        tol = max(_TOL, 8 * r * np.finfo(mu.dtype if mu.dtype.kind == "f" else float).eps)  # float32 results too
+        off = np.abs(mu.sum(-1) - 1.0)
+        if np.any(off > tol):
+            raise ValueError(f"result.mu must sum to 1 over its last axis (mode probabilities), got a sum off by "
+                             f"{off.max():.3g} (shape {mu.shape})")
+    for i, c in enumerate(components):
         n = len(c)
         if np.shape(result.xs[i]) != (T,) + batch + (n,) or np.shape(result.Ps[i]) != (T,) + batch + (n, n):
             raise ValueError(f"result.xs[{i}], result.Ps[{i}] must have shapes {(T,) + batch + (n,)} and "
                              f"{(T,) + batch + (n, n)}, got {np.shape(result.xs[i])} and {np.shape(result.Ps[i])}")
-    N = estimator.N
     for name, shape in (("x", (N,)), ("P", (N, N))):
         if np.shape(getattr(result, name)) != (T,) + batch + shape:
             raise ValueError(f"result.{name} must have shape {(T,) + batch + shape}, got "
                              f"{np.shape(getattr(result, name))}")
     return T, batch
+
+
+def _kim_weights(log_mu, Pi, log_ms_next):
+    r"""Kim's backward mode weights of one step, in log space (any array namespace: the NumPy loop
+    of :func:`imm_smoother` and its JAX engine :func:`kftrack.engines.run_imm_smoother_scan`).
+
+    From the filtered :math:`\log\mu^i_{k|k}` ``log_mu`` (..., r), the Markov matrix ``Pi`` (r, r)
+    of the step after ``k`` and the smoothed :math:`\log\mu^j_{k+1|T}` ``log_ms_next`` (..., r):
+    :math:`\mu^{ij}_{k|T} = \mu^{i|j}_k\,\mu^j_{k+1|T}` (:func:`kftrack.kernels.mixing_log_weights`),
+    returns the weights :math:`\mu^{ij}_{k|T}/\mu^i_{k|T}` (..., r_i, r_j) of the merge over ``j``
+    (all on ``j = i`` for a mode of probability 0) and :math:`\log\mu^i_{k|T}` (..., r), normalized."""
+    xp = array_namespace(log_mu, Pi, log_ms_next)
+    r = Pi.shape[-1]
+    logw, _ = mixing_log_weights(log_mu, Pi)  # log mu^{i|j}_k
+    log_joint = logw + log_ms_next[..., None, :]  # log mu^{ij}_{k|T}
+    log_mi = logsumexp(log_joint, axis=-1, keepdims=True)  # (..., i, 1)
+    with np.errstate(invalid="ignore"):
+        log_cond = log_joint - log_mi  # log P(M_{k+1} = j | M_k = i, Z^T)
+    zero, minus_inf = xp.asarray(0.0, dtype=log_cond.dtype), xp.asarray(-math.inf, dtype=log_cond.dtype)
+    self_weight = xp.where(xp.eye(r, dtype=xp.bool), zero, minus_inf)  # (i, j): all weight on j = i
+    log_cond = xp.where(xp.isinf(log_mi) & (log_mi < 0), self_weight, log_cond)  # a mode of probability 0
+    log_m = log_mi[..., 0]
+    return xp.exp(log_cond), log_m - logsumexp(log_m, axis=-1, keepdims=True)
 
 
 def _pair_space(ci: tuple, cj: tuple):
@@ -1245,7 +1290,7 @@ def _pair_rts(mode, x_i, P_i, x_j, P_j, xs_next, Ps_next, dt, space):
     return x_s[..., back], P_s[..., back[:, None], back]
 
 
-def imm_smoother(estimator: IMM, result: IMMResult, dt=None, *, times=None) -> IMMSmootherResult:
+def imm_smoother(estimator: IMM | IMMParams, result: IMMResult, dt=None, *, times=None) -> IMMSmootherResult:
     r"""Fixed-interval smoother for a Markov-switching linear model over the output of
     :func:`imm_filter`: Kim's backward recursion (Kim 1994; Kim & Nelson 1999, §5.2), run on the
     IMM's mode-matched posteriors :math:`x^i_{k|k}, P^i_{k|k}` and probabilities
@@ -1305,22 +1350,38 @@ def imm_smoother(estimator: IMM, result: IMMResult, dt=None, *, times=None) -> I
     the case at hand (tests/test_imm_smoother.py compares with the exact smoother by enumeration
     of the mode sequences).
 
+    **Two engines.** NumPy arrays in ``result`` run the recursion above in a Python loop over
+    ``k``, for every bank. JAX arrays (the result of :func:`imm_filter` on JAX input, or of
+    :func:`imm_loglik`) run it as one reversed ``jax.lax.scan``
+    (:func:`kftrack.engines.run_imm_smoother_scan`: the same kernels, all ``r^2`` pairs in one
+    call of :func:`kftrack.kernels.rts_step` per step) and return JAX arrays; it takes the banks
+    that :func:`imm_filter`'s JAX engine takes (:class:`KalmanMode` on the whole common state)
+    and composes with ``jax.jit``, ``jax.vmap`` and ``jax.grad``: inside a trace the shapes of
+    ``result`` are checked, not its values. With an :class:`IMMParams` in place of the estimator
+    (the pure entry point, for ``grad`` and ``vmap`` over the parameters), ``F``, ``Q`` and
+    :math:`\Pi = \operatorname{softmax}(L)` of ``params`` are those of every step (``H``, ``R``,
+    ``log_mu0`` are checked, not used). The JAX engine solves :math:`P^{ij}_{k+1|k}` without
+    the NumPy engine's pseudo-inverse branch (inf/NaN for a singular one).
+
     Parameters
     ----------
     estimator : the :class:`IMM` (not :class:`GPB1`) that produced ``result``; its modes are
         :class:`KalmanMode`, :class:`EKFMode`, :class:`UKFMode` (any mix, any dimensions), or
-        modes with ``predict_linearized`` (:class:`Mode`); other modes raise ``TypeError``.
-    result : the :class:`IMMResult` of :func:`imm_filter` with this estimator (it carries the
-        per-mode posteriors ``xs``, ``Ps``); ``result.mu`` must be finite probabilities.
+        modes with ``predict_linearized`` (:class:`Mode`); other modes raise ``TypeError``. Or
+        the :class:`IMMParams` given to :func:`imm_loglik` (``F``, ``Q`` (r, n, n), ``logits``
+        (r, r): one fixed interval; the JAX engine, whatever the arrays of ``result``).
+    result : the :class:`IMMResult` of :func:`imm_filter` with this estimator, or of
+        :func:`imm_loglik` with these ``params`` (it carries the per-mode posteriors ``xs``,
+        ``Ps``); ``result.mu`` must be finite probabilities (checked when not traced).
     dt : interval (s) after each step, scalar, (T,) or (T - 1,): the same as given to
-        :func:`imm_filter`.
+        :func:`imm_filter`. None with an :class:`IMMParams`.
     times : None, or instead of ``dt`` the timestamps ``(T,)`` (s), as in :func:`imm_filter`.
 
     Returns
     -------
     IMMSmootherResult
         ``x`` (T, ..., N), ``P`` (T, ..., N, N), ``mu`` (T, ..., r), ``xs``, ``Ps`` (per mode,
-        on its components).
+        on its components); NumPy or JAX arrays, as ``result`` (JAX with an :class:`IMMParams`).
 
     References
     ----------
@@ -1343,10 +1404,21 @@ def imm_smoother(estimator: IMM, result: IMMResult, dt=None, *, times=None) -> I
     ((8, 2), (8, 2))
     >>> bool(np.allclose(back.mu.sum(-1), 1.0))       # smoothed mode probabilities
     True
+
+    The pure entry point: with ``p = imm_params(bank, 1.0)``,
+    ``jax.grad(lambda p: (imm_smoother(p, imm_loglik(p, zs, x0, P0)[1]).x[:, 0] ** 2).sum())(p)``
+    is an :class:`IMMParams` of gradients, and ``jax.vmap`` over a mode's ``Q`` smooths for each
+    value; ``tests/test_compose_imm.py`` checks both (against central differences and the NumPy
+    engine).
     """
-    T, batch = _check_smoother_input(estimator, result)
-    dts = _dts(dt, T, times)
+    if isinstance(estimator, IMMParams):  # the pure entry point: the JAX engine, one fixed interval
+        return _smoother_from_params(estimator, result, dt, times)
+    _check_smoother_estimator(estimator)
     r, N, comps = estimator.r, estimator.N, estimator.components
+    T, batch = _check_smoother_result(result, r, comps, N)
+    dts = _dts(dt, T, times)
+    if use_jax(result.mu, result.x, result.P, *result.xs, *result.Ps):
+        return _smoother_jax(result, *_linear_bank(estimator, dts, "imm_smoother"))
     common = all(c == tuple(range(N)) for c in comps)  # every mode holds the common state, in order
     with np.errstate(divide="ignore"):
         log_mu_f = np.log(np.asarray(result.mu, dtype=float))
@@ -1354,7 +1426,6 @@ def imm_smoother(estimator: IMM, result: IMMResult, dt=None, *, times=None) -> I
     out_xs = tuple(np.empty((T,) + batch + (len(c),)) for c in comps)
     out_Ps = tuple(np.empty((T,) + batch + (len(c), len(c))) for c in comps)
     out_x, out_P = np.empty((T,) + batch + (N,)), np.empty((T,) + batch + (N, N))
-    self_weight = np.where(np.eye(r, dtype=bool), 0.0, -np.inf)  # (i, j): all weight on j = i
     log_ms = log_mu_f[T - 1] - logsumexp(log_mu_f[T - 1], axis=-1, keepdims=True)
     # the filter's per-mode posteriors as NumPy arrays (a JAX engine result is converted once)
     f_xs = [np.asarray(a, dtype=float) for a in result.xs]
@@ -1363,13 +1434,7 @@ def imm_smoother(estimator: IMM, result: IMMResult, dt=None, *, times=None) -> I
     Ps_s = [f_Ps[j][T - 1] for j in range(r)]
     spaces = [[_pair_space(comps[i], comps[j]) for j in range(r)] for i in range(r)]
     for k in range(T - 2, -1, -1):
-        logw, _ = mixing_log_weights(log_mu_f[k], estimator.transition(dts[k]))  # log mu^{i|j}_k
-        log_joint = logw + log_ms[..., None, :]  # log mu^{ij}_{k|T}
-        log_mi = logsumexp(log_joint, axis=-1, keepdims=True)  # (..., i, 1)
-        with np.errstate(invalid="ignore"):
-            log_cond = log_joint - log_mi  # log P(M_{k+1} = j | M_k = i, Z^T)
-        log_cond = np.where(np.isneginf(log_mi), self_weight, log_cond)  # a mode of probability 0
-        cond = np.exp(log_cond)
+        cond, log_ms = _kim_weights(log_mu_f[k], estimator.transition(dts[k]), log_ms)
         new_xs, new_Ps = [], []
         for i in range(r):
             pairs = [_pair_rts(mode, f_xs[i][k], f_Ps[i][k], f_xs[j][k], f_Ps[j][k], xs_s[j], Ps_s[j], dts[k],
@@ -1378,7 +1443,6 @@ def imm_smoother(estimator: IMM, result: IMMResult, dt=None, *, times=None) -> I
             new_xs.append(a)
             new_Ps.append(b)
         xs_s, Ps_s = new_xs, new_Ps
-        log_ms = log_mi[..., 0] - logsumexp(log_mi[..., 0], axis=-1, keepdims=True)
         mu_s = np.exp(log_ms)
         out_mu[k] = mu_s
         for i in range(r):
@@ -1393,3 +1457,46 @@ def imm_smoother(estimator: IMM, result: IMMResult, dt=None, *, times=None) -> I
     for i in range(r):
         out_xs[i][T - 1], out_Ps[i][T - 1] = f_xs[i][T - 1], f_Ps[i][T - 1]
     return IMMSmootherResult(out_x, out_P, out_mu, out_xs, out_Ps)
+
+
+def _smoother_jax(result: IMMResult, Fs, Qs, Pis) -> IMMSmootherResult:
+    """The JAX engine of :func:`imm_smoother` (arguments checked): ``Fs``, ``Qs`` (T, r, n, n) and
+    ``Pis`` (T, r, r) per step, NumPy or JAX arrays; the result's arrays converted (JAX arrays of
+    the result's dtype stay as they are: the last step is the filter's, bit for bit)."""
+    conv = lambda a, dtype=_result_dtype(result): to_engine(a, True, dtype)  # noqa: E731
+    mu, x, P = conv(result.mu), conv(result.x), conv(result.P)
+    xs, Ps = tuple(conv(a) for a in result.xs), tuple(conv(b) for b in result.Ps)
+    if x.shape[0] < 2:
+        return IMMSmootherResult(x, P, mu, xs, Ps)
+    return IMMSmootherResult(*run_imm_smoother_scan(mu, x, P, xs, Ps, conv(Pis), conv(Fs), conv(Qs),
+                                                    backward_weights=_kim_weights))
+
+
+def _result_dtype(result: IMMResult):
+    """The dtype of the smoother's JAX engine: the result's if it holds JAX arrays, else float64
+    (:func:`kftrack.engines.check_dtype`: needs ``jax_enable_x64``)."""
+    return result.x.dtype if use_jax(result.x) else check_dtype(None, True)
+
+
+def _smoother_from_params(params: IMMParams, result: IMMResult, dt, times) -> IMMSmootherResult:
+    """:func:`imm_smoother` with an :class:`IMMParams` (one fixed interval): checked, then the JAX engine."""
+    if dt is not None or times is not None:
+        given = "dt" if dt is not None else "times"
+        raise ValueError("dt and times must be None when the first argument is an IMMParams (its F, Q and logits "
+                         f"are those of one fixed interval), got {given} of shape "
+                         f"{np.shape(dt if dt is not None else times)}")
+    if not isinstance(result, IMMResult):
+        raise TypeError(f"result must be an IMMResult from imm_loglik or imm_filter, got {type(result).__name__}")
+    x_shape = tuple(np.shape(result.x))
+    if len(x_shape) < 2:
+        raise ValueError(f"result.x must have shape (T, ..., n), got shape {x_shape}")
+    n = x_shape[-1]
+    r = _check_imm_params(params, n, None, n_from="result.x", m_from="params.H")
+    T, _ = _check_smoother_result(result, r, (tuple(range(n)),) * r, n)
+    import jax  # IMMParams are JAX's
+
+    jnp = jax.numpy
+    F, Q, logits = (to_engine(a, True, _result_dtype(result)) for a in (params.F, params.Q, params.logits))
+    Pi = jnp.exp(jax.nn.log_softmax(logits, axis=-1))  # as imm_loglik forms it
+    return _smoother_jax(result, jnp.broadcast_to(F, (T,) + F.shape), jnp.broadcast_to(Q, (T,) + Q.shape),
+                         jnp.broadcast_to(Pi, (T, r, r)))

@@ -303,10 +303,11 @@ def kalman_filter(zs, x0, P0, F, Q, H, R, *, dt=None, times=None, time_varying: 
 
 
 def _filter(zs, x0, P0, F, Q, H, R, dt, time_varying, times, missing, dtype, *, progress=False, priors=True,
-            total=False):
+            total=False, checkpoint=None):
     """:func:`kalman_filter` after its check of ``priors``; with ``total`` the log-likelihood of each
     run summed over its measured steps, shape ``batch`` (``kftrack.engines.run_filter``), for
-    :func:`kftrack.tuning.total_loglik`: on the JAX engine a loop that stores no sequence."""
+    :func:`kftrack.tuning.total_loglik`: on the JAX engine a loop that stores no sequence
+    (``checkpoint``: its segments under ``jax.checkpoint``, validated by the caller)."""
     zs_h, gone = check_missing(zs, missing)
     T, m = zs_h.shape[0], zs_h.shape[-1]
     x0_h, P0_h, n = check_state(stand_in(x0, "vector"), stand_in(P0, "cov"), ("x0", "P0"))
@@ -321,7 +322,7 @@ def _filter(zs, x0, P0, F, Q, H, R, dt, time_varying, times, missing, dtype, *, 
                       pred_steps=transition if per_step else (), pred_args=() if per_step else transition,
                       upd_args=(Given(H, H_h), Given(R, R_h)),
                       cov_shapes=(P0_h.shape[:-2], F_h.shape[tb:-2], Q_h.shape[tb:-2], H_h.shape[:-2], R_h.shape[:-2]),
-                      dtype=dtype, progress=progress, priors=priors, total=total)
+                      dtype=dtype, progress=progress, priors=priors, total=total, checkpoint=checkpoint)
 
 
 _KF_PREDICT = Kernel(kf_predict)

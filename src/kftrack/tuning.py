@@ -180,7 +180,21 @@ def _check_zs(zs, missing=None) -> None:
                          "defined")
 
 
-def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool | None = None, missing=None):
+def _check_checkpoint(checkpoint) -> int | None:
+    """None, or a positive int (a NumPy integer too; not a bool)."""
+    if checkpoint is None:
+        return None
+    if isinstance(checkpoint, (bool, np.bool_)) or not isinstance(checkpoint, (int, np.integer)):
+        got = f" of shape {tuple(checkpoint.shape)}" if hasattr(checkpoint, "shape") else f" {checkpoint!r}"
+        raise TypeError(f"checkpoint must be None or a positive int (steps per segment), got "
+                        f"{type(checkpoint).__name__}{got}")
+    if checkpoint < 1:
+        raise ValueError(f"checkpoint must be a positive int (steps per segment), got {int(checkpoint)}")
+    return int(checkpoint)
+
+
+def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool | None = None, missing=None,
+                 checkpoint: int | None = None):
     r"""Total innovation log-likelihood :math:`\ell(e^\phi)` of the measurements (nats).
 
     .. math::
@@ -210,6 +224,18 @@ def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool 
     missing : None (the rows of NaN of ``zs`` are missing), False (none is) or a boolean mask of
         the rows not to use, as in :func:`kftrack.kalman.kalman_filter`: inside your own
         ``jax.jit`` of batched data, False or a mask keeps the covariances shared by the runs.
+    checkpoint : None (default) or a positive int ``c``: trade compute for memory under
+        ``jax.grad`` (JAX engine; the NumPy engine ignores it). Reverse mode stores the
+        residuals of every step: memory :math:`M \approx T\,b` for ``T`` steps of ``b`` bytes
+        each (per run, the state and the innovations). With ``c`` the ``T`` steps run as
+        :math:`\lfloor T/c \rfloor` segments of ``c`` steps, each under ``jax.checkpoint``
+        (rematerialised: its forward pass is run again in the reverse pass), so only the state at
+        each segment's start is kept: :math:`M \approx (T/c)\,b_0 + c\,b` (``b_0`` the
+        bytes of a state), smallest at :math:`c = \sqrt{T b_0 / b}`, near :math:`\sqrt{T}`, for
+        about one more forward pass of compute. When ``c`` does not divide ``T`` the :math:`T \bmod c` last steps run as one
+        plain segment (no padding); ``c >= T`` is one plain segment, as None. The value is the
+        same bit for bit; the gradient differs by the order in which the contributions of the
+        steps are summed (round-off; ``tests/test_compose.py`` states the bound).
 
     Returns
     -------
@@ -223,6 +249,7 @@ def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool 
         ``R``, ``zs``, ``x0``, ``P0``).
     """
     lp, jax_engine = _check_log_params(log_params)
+    checkpoint = _check_checkpoint(checkpoint)
     _check_build(build)
     tv = _time_varying(build, time_varying)
     _check_zs(zs, missing)
@@ -239,7 +266,7 @@ def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool 
     F, Q, H, R = out
     expect = np.broadcast_shapes(tuple(np.shape(zs)[1:-1]), tuple(np.shape(x0)[:-1]))
     if jax_engine:  # the sum alone: a loop that stores no sequence (kftrack.engines.run_total_scan)
-        ell = _filter(zs, x0, P0, F, Q, H, R, None, tv, None, missing, None, total=True)
+        ell = _filter(zs, x0, P0, F, Q, H, R, None, tv, None, missing, None, total=True, checkpoint=checkpoint)
         batch = tuple(ell.shape)
     else:
         res = kalman_filter(zs, x0, P0, F, Q, H, R, time_varying=tv, priors=False, missing=missing)  # only loglik
