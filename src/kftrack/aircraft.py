@@ -91,9 +91,18 @@ chapter flights are therefore in-sample; the test flights are scored by
 :func:`kftrack.flightscore.evaluate` against a CV filter tuned on the training flights
 (``benchmarks/aircraft_split.py``, ``data/adsb/aircraft_split.json``). :func:`fit_recipe` refuses
 a test flight. :func:`refit_recipe` is the scan as one call (a coordinate search of the geometric-mean
-one-step RMSE over the flights it is given, factors of 1/4 to 4 around each constant): a user refits
-the recipe on their own flights with it and passes ``**result.kwargs()`` to :func:`track_flight`;
-the benchmark refits the glider constants on the two training gliders with it.
+one-step RMSE over the flights it is given, factors of 1/4 to 4 around each constant; with
+``sweeps=None`` run to convergence, the factors shrinking to a smallest step of :math:`2^{1/4}`): a
+user refits the recipe on their own flights with it and passes ``**result.kwargs()`` to
+:func:`track_flight`. The module's constants stay the defaults (the chapter's in-sample sections
+use them); the benchmark re-derives them per category with it, started from them and run to
+convergence on the training flights of each category (``data/adsb/aircraft_split.json``,
+"recipe_refit", measured 2026-12-03): on the four training airliner streams ``q = (2.38, 5382, 80,
+80)`` m²/s³, a turn rate of 2.52 deg/s, :math:`c_\lambda = 1.68`, :math:`r_0 = 168` m² (training
+geometric-mean RMSE 128.9 to 112.0 m, 221 evaluations); on the two training gliders ``q = (8, 14.9,
+320, 320)``, 24 deg/s, :math:`c_\lambda = 0.004` (the lag term nearly off), :math:`r_0 = 10\,760` m² (653.9
+to 525.9 m, 225 evaluations); both a coordinate-wise minimum at the smallest step, not a global
+one. Chapter 18's out-of-sample claims rest on those refit constants.
 The maximum-likelihood fit of the recipe's innovations, :func:`fit_recipe` (cruise and manoeuvre
 ``q``, :math:`c_\lambda`, :math:`r_0`; the turn modes' ``q``, the sojourn times and the turn
 rate held), run to convergence on all rows of the seven chapter flights (29 637 terms; started
@@ -157,7 +166,7 @@ from ._validate import as_float_array
 __all__ = [
     "TrackResult", "track_flight", "one_step_predictions", "scored_rows", "cv_predictions",
     "two_point_init", "fit_recipe", "refit_recipe", "RecipeConstants", "REFIT_FACTORS", "REFIT_PARAMETERS",
-    "reinit_gap", "innovation_loglik", "Q_MODES", "SOJOURN_S", "OMEGA_MODES",
+    "REFIT_MIN_STEP", "reinit_gap", "innovation_loglik", "Q_MODES", "SOJOURN_S", "OMEGA_MODES",
     "TURN_DEG_S", "Q_ACCEL", "LAG_SCALE",
     "R_FLOOR", "FALSE_REJECTION", "LOST_AFTER", "REINIT_GAP_S", "MAX_SPEED_MPS", "COLLINEAR_DEG",
     "DT_WINDOW", "REASONS",
@@ -1097,7 +1106,13 @@ class RecipeConstants(NamedTuple):
     lag_scale : :math:`c_\\lambda`; r_floor : :math:`r_0`, m².
     score : geometric mean over the flights of the one-step RMSE on the scored rows (m), with these
         constants; start_score : the same with the constants the scan started from.
-    evaluations : number of constant sets scored.
+    evaluations : number of distinct constant sets scored.
+    converged : True when a whole sweep with the smallest step (at most ``min_step``) moved no
+        constant: the constants are then a coordinate-wise minimum of the score on the factor grid
+        of that step (no single move of one constant by one of the last factors lowers it), not a
+        global minimum.
+    step : the smallest multiplicative step of the last sweep (``min(max(f, 1/f))`` over its
+        factors).
     """
 
     q: tuple
@@ -1108,6 +1123,8 @@ class RecipeConstants(NamedTuple):
     score: float
     start_score: float
     evaluations: int
+    converged: bool
+    step: float
 
     def kwargs(self) -> dict:
         """``{"q", "tau", "omega", "lag_scale", "r_floor"}`` for :func:`track_flight`."""
@@ -1119,6 +1136,10 @@ class RecipeConstants(NamedTuple):
 REFIT_FACTORS = (0.25, 0.5, 2.0, 4.0)
 #: The constants :func:`refit_recipe` scans, in its order.
 REFIT_PARAMETERS = ("q_cruise", "q_manoeuvre", "q_turn", "turn_deg_s", "lag_scale", "r_floor")
+#: Smallest multiplicative step of :func:`refit_recipe` run to convergence (``sweeps=None``).
+REFIT_MIN_STEP = 2.0 ** 0.25
+#: Most constant sets :func:`refit_recipe` scores by default.
+REFIT_MAX_EVALUATIONS = 500
 
 
 def _constants(p: dict):
@@ -1149,22 +1170,89 @@ def _geo_rmse(prepared, q, tau, omega, lag_scale, r_floor, gamma, spike_undo):
     return math.exp(sum(logs) / len(logs))
 
 
-def refit_recipe(flights, *, start=None, factors=REFIT_FACTORS, sweeps: int = 2,
+def _step(factors) -> float:
+    """Smallest multiplicative move of ``factors`` (1 for none): ``min(max(f, 1/f))`` over f != 1."""
+    moves = [max(f, 1.0 / f) for f in factors if f != 1.0]
+    return min(moves) if moves else 1.0
+
+
+def _coordinate_search(score, p: dict, names, factors, sweeps, min_step: float, max_evaluations: int):
+    r"""Multiplicative coordinate (pattern) search minimising ``score(p)`` over the positive values
+    ``p[name]`` of ``names``.
+
+    A sweep tries, for each name in turn, ``p[name] * f`` for every ``f`` of ``factors`` (the others
+    held) and keeps the lowest score. ``sweeps`` an int: at most that many sweeps, stopping after a
+    sweep that moves nothing. ``sweeps`` None: sweeps are repeated while one moves something; after
+    a sweep that moves nothing the factors become their square roots,
+    :math:`f \to f^{1/2}`, until the step (:func:`_step`) is at most ``min_step``; a sweep at that
+    step that moves nothing ends the search (converged). Scores are cached (values rounded to 12
+    significant digits), and at most ``max_evaluations`` distinct sets are scored.
+
+    Returns ``(p, best, first, evaluations, converged, step)``.
+    """
+    seen = {}
+
+    def cached(q):
+        key = tuple(float(f"{q[k]:.12g}") for k in sorted(q))
+        if key not in seen:
+            if len(seen) >= max_evaluations:
+                return None
+            seen[key] = score(q)
+        return seen[key]
+
+    best = first = cached(p)
+    fac = list(factors)
+    n_sweeps, converged, capped = 0, False, False
+    while not capped:
+        changed = False
+        for name in names:
+            base = p[name]
+            for f in fac:
+                trial = dict(p, **{name: base * f})
+                s = cached(trial)
+                if s is None:
+                    capped = True
+                    break
+                if s < best:
+                    best, p, changed = s, trial, True
+            if capped:
+                break
+        n_sweeps += 1
+        if capped:
+            break
+        if not changed:
+            converged = _step(fac) <= min_step
+            if sweeps is not None or converged:
+                break
+            fac = [math.sqrt(f) for f in fac]
+        elif sweeps is not None and n_sweeps >= sweeps:
+            break
+    return p, best, first, len(seen), converged, _step(fac)
+
+
+def refit_recipe(flights, *, start=None, factors=REFIT_FACTORS, sweeps: int | None = 2,
+                 min_step: float = REFIT_MIN_STEP, max_evaluations: int = REFIT_MAX_EVALUATIONS,
                  spike_undo: bool = True) -> RecipeConstants:
     r"""Re-derive the recipe's constants on ``flights`` by the chapter's training procedure: a scan
     of the one-step RMSE (the score the chapter reports), never a test flight.
 
-    Coordinate search: for each constant of :data:`REFIT_PARAMETERS` in turn (the cruise, manoeuvre
-    and turn modes' spectral densities, the turn modes' rate in deg/s, :math:`c_\lambda`,
-    :math:`r_0`; the sojourn times held at :data:`SOJOURN_S`), the recipe (:func:`track_flight`) is
-    run over every flight with the constant multiplied by each of ``factors``, the others held, and
-    the value with the lowest score is kept,
+    Coordinate search (:func:`_coordinate_search`): for each constant of :data:`REFIT_PARAMETERS` in
+    turn (the cruise, manoeuvre and turn modes' spectral densities, the turn modes' rate in deg/s,
+    :math:`c_\lambda`, :math:`r_0`; the sojourn times held at :data:`SOJOURN_S`), the recipe
+    (:func:`track_flight`) is run over every flight with the constant multiplied by each of
+    ``factors``, the others held, and the value with the lowest score is kept,
 
     .. math:: J = \exp\Big(\frac1F\sum_f \log \mathrm{RMSE}_f\Big),
 
-    the geometric mean over the ``F`` flights of the one-step RMSE on :func:`scored_rows`. The
-    sweep over all constants is repeated up to ``sweeps`` times, stopping early when a sweep
-    changes nothing. :math:`J` never rises from the start. The likelihood fit
+    the geometric mean over the ``F`` flights of the one-step RMSE on :func:`scored_rows`. With
+    ``sweeps`` an int the sweep over all constants is repeated up to ``sweeps`` times, stopping early
+    when a sweep changes nothing (a fixed budget). With ``sweeps=None`` the search runs to
+    convergence: sweeps repeat while one improves :math:`J`; when a sweep changes nothing the factors
+    shrink to their square roots (1/4, 1/2, 2, 4 -> 1/2, 1/√2, √2, 2 -> ...) until the smallest
+    step is at most ``min_step``, and a sweep at that step that moves nothing ends it. *Converged*
+    (``result.converged``) means a coordinate-wise minimum of :math:`J` on the factor grid of the
+    smallest step: no single move of one constant by one of the last factors lowers :math:`J`. It
+    is not a global minimum. :math:`J` never rises from the start. The likelihood fit
     (:func:`fit_recipe`) is the other tuning; on the chapter flights it lowers the median error and
     raises the RMSE (module docstring).
 
@@ -1175,7 +1263,13 @@ def refit_recipe(flights, *, start=None, factors=REFIT_FACTORS, sweeps: int = 2,
         ValueError).
     start : None (the module's constants) or a dict of some of :data:`REFIT_PARAMETERS`, positive.
     factors : positive multipliers tried around each constant (1 is always kept).
-    sweeps : positive int, the most sweeps.
+    sweeps : positive int, the most sweeps at ``factors`` (no shrinking); or None, run to
+        convergence (needs a factor other than 1).
+    min_step : float > 1, the smallest step of a converging search (:data:`REFIT_MIN_STEP`,
+        :math:`2^{1/4}`); a search with ``sweeps`` an int reports ``converged`` only if its step is
+        already at most ``min_step``.
+    max_evaluations : positive int, the most distinct constant sets scored (each runs the recipe
+        on every flight); the search stops there, not converged.
     spike_undo : as in :func:`track_flight`.
 
     Returns
@@ -1189,8 +1283,8 @@ def refit_recipe(flights, *, start=None, factors=REFIT_FACTORS, sweeps: int = 2,
     >>> fl = adsb.load_flight("gliders/cevennes")
     >>> short = fl._replace(**{k: getattr(fl, k)[:100] for k in adsb.COLUMNS})     # a user's own flights
     >>> c = aircraft.refit_recipe([short], factors=(2.0,), sweeps=1)                  # a short scan
-    >>> c.score <= c.start_score, c.evaluations
-    (True, 7)
+    >>> c.score <= c.start_score, c.evaluations, c.converged
+    (True, 7, False)
     >>> res = aircraft.track_flight(short.t_s, short.lat_deg, short.lon_deg, **c.kwargs())
     """
     from .adsb import refuse_test_flights
@@ -1205,8 +1299,15 @@ def refit_recipe(flights, *, start=None, factors=REFIT_FACTORS, sweeps: int = 2,
     fac = np.atleast_1d(np.asarray(factors, dtype=float))
     if fac.ndim != 1 or fac.size == 0 or not np.all(np.isfinite(fac)) or np.any(fac <= 0):
         raise ValueError(f"factors must be positive finite numbers, got {factors!r}")
-    if isinstance(sweeps, bool) or not isinstance(sweeps, (int, np.integer)) or sweeps < 1:
-        raise ValueError(f"sweeps must be a positive int, got {sweeps!r}")
+    if sweeps is not None and (isinstance(sweeps, bool) or not isinstance(sweeps, (int, np.integer)) or sweeps < 1):
+        raise ValueError(f"sweeps must be a positive int or None, got {sweeps!r}")
+    if sweeps is None and np.all(fac == 1.0):
+        raise ValueError(f"sweeps=None (run to convergence) needs a factor other than 1, got factors={factors!r}")
+    if isinstance(min_step, bool) or not isinstance(min_step, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(min_step) or min_step <= 1.0:
+        raise ValueError(f"min_step must be a finite number > 1, got {min_step!r}")
+    if isinstance(max_evaluations, bool) or not isinstance(max_evaluations, (int, np.integer)) or max_evaluations < 1:
+        raise ValueError(f"max_evaluations must be a positive int, got {max_evaluations!r}")
     prepared = []
     for t, lat, lon in cols:
         enu, _, ok = _frame_of(t, lat, lon)
@@ -1216,27 +1317,10 @@ def refit_recipe(flights, *, start=None, factors=REFIT_FACTORS, sweeps: int = 2,
         prepared.append((t, lat, lon, enu, ok, m))
     gamma = _gamma(FALSE_REJECTION)
     undo = bool(spike_undo)
-    seen = {}
-
-    def score(q):
-        key = tuple(sorted(q.items()))
-        if key not in seen:
-            seen[key] = _geo_rmse(prepared, *_constants(q), gamma, undo)
-        return seen[key]
-
-    best = score(p)
-    first = best
-    for _ in range(int(sweeps)):
-        changed = False
-        for name in REFIT_PARAMETERS:
-            base = p[name]
-            for f in fac.tolist():
-                trial = dict(p, **{name: base * f})
-                s = score(trial)
-                if s < best:
-                    best, p, changed = s, trial, True
-        if not changed:
-            break
+    p, best, first, n, converged, step = _coordinate_search(
+        lambda v: _geo_rmse(prepared, *_constants(v), gamma, undo), p, REFIT_PARAMETERS, fac.tolist(),
+        None if sweeps is None else int(sweeps), float(min_step), int(max_evaluations))
     q, tau, omega, lag_scale, r_floor = _constants(p)
     return RecipeConstants(tuple(float(v) for v in q), tuple(float(v) for v in tau), tuple(float(v) for v in omega),
-                           float(lag_scale), float(r_floor), float(best), float(first), len(seen))
+                           float(lag_scale), float(r_floor), float(best), float(first), n, bool(converged),
+                           float(step))
