@@ -39,8 +39,8 @@ about them, and the completed covariance stays positive semi-definite). Componen
 lacks are simply dropped (marginalized). Zero padding would instead pull ``omega`` towards 0 and
 shrink its variance. The combined output is reported in the common state; there a mode lacking
 components is completed in the same way from the combination of the *full* modes (those holding
-every component; at least one is required). :func:`imm_smoother` smooths every such bank (Kim's
-backward pass with the same completion).
+every component; at least one is required). :func:`imm_smoother` smooths every such bank on the NumPy engine (Kim's
+backward pass with the same completion; its JAX engine takes KalmanModes on the common state).
 
 Shapes: ``x`` ``(..., N)``, ``P`` ``(..., N, N)``, ``mu`` ``(..., r)``; time first for sequences.
 """
@@ -1427,7 +1427,7 @@ def imm_smoother(estimator: IMM | IMMParams, result: IMMResult, dt=None, *, time
     out_Ps = tuple(np.empty((T,) + batch + (len(c), len(c))) for c in comps)
     out_x, out_P = np.empty((T,) + batch + (N,)), np.empty((T,) + batch + (N, N))
     log_ms = log_mu_f[T - 1] - logsumexp(log_mu_f[T - 1], axis=-1, keepdims=True)
-    # the filter's per-mode posteriors as NumPy arrays (a JAX engine result is converted once)
+    # the filter's per-mode posteriors as NumPy arrays (a JAX result took the JAX engine above)
     f_xs = [np.asarray(a, dtype=float) for a in result.xs]
     f_Ps = [np.asarray(b, dtype=float) for b in result.Ps]
     xs_s = [f_xs[j][T - 1] for j in range(r)]

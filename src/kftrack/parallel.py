@@ -3,10 +3,11 @@ r"""The linear Kalman filter and RTS smoother parallel in time: associative scan
 Särkkä & García-Fernández (2021), "Temporal parallelization of Bayesian smoothers", IEEE TAC 66(1):
 the filter and the smoother are written as prefix (suffix) products of one element per step
 under an associative operation, evaluated by :func:`prefix_scan` (span :math:`O(\log T)` rounds,
-work :math:`O(T)`: under :math:`3T` combinations for :math:`T \le 10^4`). On a GPU the span is what
-counts; on a CPU of a few cores the work does, and a combination (two ``n x n`` solves and some
-ten matrix products) costs more than a step of the sequential recursion: the parallel form loses
-there (``benchmarks/compose.py`` measures by how much).
+work :math:`O(T)`: at most :math:`3T` combinations for :math:`T \le 10^4`). On a GPU with lanes
+enough for a round's combinations the span is what counts; on one CPU core the work does, and a
+combination (two ``n x n`` solves and some ten matrix products) costs more than a step of the
+sequential recursion: the parallel form lost there at every length measured, :math:`T = 10^2` to
+:math:`10^4` (``benchmarks/compose.py``).
 
 **Built from the kernels** (:mod:`kftrack.kernels`), with the step convention of
 :func:`kftrack.kalman.kalman_filter` (at step ``k`` update with ``zs[k]``, then predict with
@@ -181,9 +182,10 @@ def prefix_scan(op, elems, identity):
     :math:`2T + (T/L) \lceil \log_2 (T/L) \rceil` combinations, :math:`O(T)` (26 455 at
     :math:`T = 10^4`), where the doubling scan alone does :math:`T \lceil \log_2 T \rceil`
     (140 000). ``op`` is traced three times whatever ``T``, so the compile time does not grow
-    with ``T`` (``jax.lax.associative_scan``, with about :math:`2T` combinations too, traces ``op``
-    twice per level: on the shared two-core CPU of the book, under load, the filter took more than
-    two minutes to compile at ``T = 10^3``)."""
+    with ``T`` (``jax.lax.associative_scan``, with about :math:`2T` combinations against these :math:`2.6T`,
+    traces ``op`` twice per level: on the shared two-core CPU of the book, under load, the filter
+    took more than two minutes to compile at ``T = 10^3``, a run made while developing, not
+    stored)."""
     jax = _jax()
     jnp, tree = jax.numpy, jax.tree_util
     T = tree.tree_leaves(elems)[0].shape[0]
