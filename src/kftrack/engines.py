@@ -63,8 +63,8 @@ engine on small states.
 **The log-likelihood alone.** When only the total log-likelihood is wanted (what ``jax.grad``
 differentiates: :func:`kftrack.tuning.total_loglik`, :func:`kftrack.imm.imm_loglik` with
 ``sequence=False``), :func:`run_total_scan` and :func:`run_imm_total_scan` run the same step
-under a plain ``jax.lax.scan`` whose carry is the state and the running sum, with no per-step
-output: the stored loop of the sequence would carry its whole output buffers, and under reverse
+under a plain ``jax.lax.scan`` whose carry is the state and the running sum, with no per-run
+output per step: the stored loop of the sequence would carry its whole output buffers, and under reverse
 mode their cotangents, through every step. For the linear filter :func:`run_total_scan` runs the
 covariance recursion first, in a loop of its own that also forms :math:`S_k^{-1}` once per step,
 then the means, whose score :math:`y^\top S_k^{-1} y` leaves reverse mode two vectors per run
@@ -572,7 +572,7 @@ def _segmented(jax, segment, carry, T: int, checkpoint):
     when its reverse pass needs its residuals: memory :math:`O(T/c + c)` per-step states instead of
     :math:`O(T)`, for about one more forward pass (Griewank & Walther 2008, ch. 12). The steps run
     the same arithmetic in the same order, so the value is the same bit for bit (checked in
-    ``tests/test_compose.py``); only the sums that reverse mode accumulates over the steps (the
+    ``tests/test_compose.py`` on the shared-covariance path, CPU); only the sums that reverse mode accumulates over the steps (the
     cotangents of inputs shared by every step) are added segment by segment, a round-off
     difference."""
     jnp = jax.numpy
@@ -607,10 +607,21 @@ def _total_linear(jax, at, zs, gone, zero, pred_args, pred_steps, upd_args, pred
     step and the derivative of :math:`y^\top S^{-1} y` written with matrix products
     (:func:`_quadratic_form`), the reverse pass keeps per run and step two vectors of ``m``
     numbers (``y`` and :math:`S^{-1} y`) and reduces one product,
-    :math:`\sum_i \bar\ell_i\, y_i y_i^\top`, per step (measured side by side, 2-D CV filter,
-    1000 runs x 500 steps, one core: ``jax.grad`` of the sum 1.6 x faster, no change of the
-    forward pass resolved by the spread). The value agrees with the one-loop score to the round-off
-    of the two solves, :math:`O(m\,\kappa(S)\,\varepsilon)` relative per term."""
+    :math:`\sum_i \bar\ell_i\, y_i y_i^\top`, per step (a side-by-side run while developing it,
+    not stored, found ``jax.grad`` of the sum faster and the forward pass unchanged within its
+    spread; the benchmark's grad rows are measured after it). The value agrees with the one-loop score to the round-off
+    of the two solves, :math:`O(m\,\kappa(S)\,\varepsilon)` relative per term.
+
+    The covariance step runs under ``jax.checkpoint``: its reverse pass recomputes the step from
+    ``P`` (the only residual kept per step) instead of reading residuals stored by the forward
+    loop. The unrolled products and factor (:func:`kftrack.kernels.mm`, ``solve_spd``) leave some
+    seventy small residuals per step, each written by its own kernel in the compiled forward
+    loop (71 kernels per step against 13 with the checkpoint, 2-D CV filter), and their
+    recomputation fuses into a few kernels of the reverse step. The forward arithmetic is the
+    same, so the value is the same bit for bit; the gradient differs at most by the round-off of
+    the recomputation's fusion (side-by-side runs while developing it, not stored: ``jax.grad`` of
+    the sum faster on the shared path and with per-run covariances, the gradient bit for bit on
+    the benchmark's shared-path setup; the benchmark's grad rows are measured after it)."""
     jnp = jax.numpy
     H, R = upd_args
     n, m = H.shape[-1], H.shape[-2]
@@ -639,7 +650,7 @@ def _total_linear(jax, at, zs, gone, zero, pred_args, pred_steps, upd_args, pred
 
     def segment(carry, ks):
         x, P, s = carry
-        P, gains = jax.lax.scan(cov_step, P, ks)
+        P, gains = jax.lax.scan(jax.checkpoint(cov_step, prevent_cse=False), P, ks)
         (x, s), _ = jax.lax.scan(mean_step, (x, s), (ks, gains))
         return x, P, s
 
@@ -654,7 +665,9 @@ def _quadratic_form():
     :math:`\dot q = 2\,\dot y^\top A y + y^\top \dot A y` written with matrix products, so that
     its transpose (the reverse pass) reduces :math:`\bar q\,y y^\top` over the runs in one
     product. Differentiating the scalar form instead would give each entry :math:`A_{ij}`, shared
-    by the runs, a reduction over the runs of its own."""
+    by the runs, a reduction over the runs of its own. :math:`A y`, which depends on the primals
+    alone (a residual of the reverse pass), is formed with elementwise products, so XLA fuses it
+    into the loop that stores it (``mv``'s product ``y A^T`` was a kernel of its own per step)."""
     jax = _jax()
     jnp = jax.numpy
 
@@ -667,7 +680,9 @@ def _quadratic_form():
     @q.defjvp
     def _(primals, tangents):
         (A, y), (dA, dy) = primals, tangents
-        return value(A, y), jnp.sum(2.0 * dy * mv(A, y) + y * mv(dA, y), axis=-1)
+        m = y.shape[-1]
+        Ay = sum(A[..., :, j] * y[..., j, None] for j in range(m))
+        return value(A, y), jnp.sum(2.0 * dy * Ay + y * mv(dA, y), axis=-1)
 
     return q
 
@@ -681,8 +696,9 @@ def run_total_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, up
                    upd_args=(), upd_steps=(), checkpoint: int | None = None):
     r"""The JAX engine for the log-likelihood alone: the step of :func:`run_scan` under a plain
     ``jax.lax.scan`` whose carry is ``(x, P, s)``, ``s`` the running sum over the measured steps
-    of ``loglik`` (:math:`\ell = \sum_k \log N(y_k; 0, S_k)`), with no per-step output. Under
-    ``jax.grad`` the loop's residuals are then the states of each step and nothing else: a stored
+    of ``loglik`` (:math:`\ell = \sum_k \log N(y_k; 0, S_k)`), with no per-run output per step
+    (the linear filter's covariance loop keeps one set of gains per step, shared by the runs).
+    Under ``jax.grad`` the loop's per-run residuals are then the states of each step: a stored
     sequence (``_stored_loop``) would carry its whole output buffers, and their cotangents,
     through every step of the reverse pass. With the linear kernels (``kf_predict``,
     ``kf_update``) two loops, covariances then means (``_total_linear``: the reverse pass of the

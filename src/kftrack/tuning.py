@@ -227,14 +227,14 @@ def total_loglik(log_params, build: Callable, zs, x0, P0, *, time_varying: bool 
     checkpoint : None (default) or a positive int ``c``: trade compute for memory under
         ``jax.grad`` (JAX engine; the NumPy engine ignores it). Reverse mode stores the
         residuals of every step: memory :math:`M \approx T\,b` for ``T`` steps of ``b`` bytes
-        each (per run, the state and the innovations). With ``c`` the ``T`` steps run as
+        each (per run, the state and the innovations, plus the gains the runs share, one set per step). With ``c`` the ``T`` steps run as
         :math:`\lfloor T/c \rfloor` segments of ``c`` steps, each under ``jax.checkpoint``
         (rematerialised: its forward pass is run again in the reverse pass), so only the state at
         each segment's start is kept: :math:`M \approx (T/c)\,b_0 + c\,b` (``b_0`` the
         bytes of a state), smallest at :math:`c = \sqrt{T b_0 / b}`, near :math:`\sqrt{T}`, for
         about one more forward pass of compute. When ``c`` does not divide ``T`` the :math:`T \bmod c` last steps run as one
         plain segment (no padding); ``c >= T`` is one plain segment, as None. The value is the
-        same bit for bit; the gradient differs by the order in which the contributions of the
+        same bit for bit (``tests/test_compose.py``: shared-covariance path, CPU); the gradient differs by the order in which the contributions of the
         steps are summed (round-off; ``tests/test_compose.py`` states the bound).
 
     Returns
