@@ -89,7 +89,9 @@ score issue 15 sets) on the chapter flights only, the training flights of the sp
 the spike-hold rule (point 4, designed on ``featured/belevingsvlucht``). Their scores on the
 chapter flights are therefore in-sample; the test flights are scored by
 :func:`kftrack.flightscore.evaluate` against a CV filter tuned on the training flights
-(``benchmarks/aircraft_split.py``, ``data/adsb/aircraft_split.json``). :func:`fit_recipe` refuses
+(``benchmarks/aircraft_split.py``, ``data/adsb/aircraft_split.json``); they were not unseen in
+one respect: from commit 7a2a72e until fb384bf a unit test (``tests/test_aircraft.py``,
+``test_figures``) asserted the recipe's issue-15 accuracy figures on them. :func:`fit_recipe` refuses
 a test flight. :func:`refit_recipe` is the scan as one call (a coordinate search of the geometric-mean
 one-step RMSE over the flights it is given, factors of 1/4 to 4 around each constant; with
 ``sweeps=None`` run to convergence, the factors shrinking to a smallest step of :math:`2^{1/4}`): a
@@ -1241,7 +1243,7 @@ def refit_recipe(flights, *, start=None, factors=REFIT_FACTORS, sweeps: int | No
     r"""Re-derive the recipe's constants on ``flights`` by the chapter's training procedure: a scan
     of the one-step RMSE (the score the chapter reports), never a test flight.
 
-    Coordinate search (:func:`_coordinate_search`): for each constant of :data:`REFIT_PARAMETERS` in
+    Coordinate search (``_coordinate_search``): for each constant of :data:`REFIT_PARAMETERS` in
     turn (the cruise, manoeuvre and turn modes' spectral densities, the turn modes' rate in deg/s,
     :math:`c_\lambda`, :math:`r_0`; the sojourn times held at :data:`SOJOURN_S`), the recipe
     (:func:`track_flight`) is run over every flight with the constant multiplied by each of

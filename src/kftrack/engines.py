@@ -704,7 +704,7 @@ def run_total_scan(zs, gone, x0, P0, batch: tuple, cov_batch: tuple, predict, up
     ``kf_update``) two loops, covariances then means (``_total_linear``: the reverse pass of the
     score touches per run the innovations alone). Same arguments as :func:`run_scan` (no
     ``priors``), and ``checkpoint``: None, or an int ``c >= 1`` (validated by the caller): the
-    steps in segments of ``c`` under ``jax.checkpoint`` (:func:`_segmented`; with the linear
+    steps in segments of ``c`` under ``jax.checkpoint`` (``_segmented``; with the linear
     kernels both loops run per segment, so the gains stored are those of one segment). Returns
     ``s`` of shape ``batch``."""
     return _total_jit()(zs, gone, x0, P0, tuple(pred_args), tuple(pred_steps), tuple(upd_args), tuple(upd_steps),

@@ -176,7 +176,7 @@ def prefix_scan(op, elems, identity):
     :math:`\lceil T/L \rceil` blocks of :math:`L = \lceil \log_2 T \rceil` steps (the last padded with
     ``identity``); (1) the prefixes inside every block, all blocks at once, one step of the block
     after another (``jax.lax.scan``, :math:`L - 1` rounds); (2) the prefixes of the block totals,
-    Hillis & Steele (1986) (:func:`_doubling_scan`, :math:`\lceil \log_2 (T/L) \rceil` rounds);
+    Hillis & Steele (1986) (``_doubling_scan``, :math:`\lceil \log_2 (T/L) \rceil` rounds);
     (3) each block's prefixes combined with the total of the blocks before it (one round). Span
     :math:`L + \lceil \log_2 (T/L) \rceil` rounds, :math:`O(\log T)`; work about
     :math:`2T + (T/L) \lceil \log_2 (T/L) \rceil` combinations, :math:`O(T)` (26 455 at
